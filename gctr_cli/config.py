@@ -1,0 +1,200 @@
+"""Typed, validated configuration for gctr (engine, success thresholds, batch settings).
+
+Every length in the engine section is *relative* to a cloud's own size (its robust diameter),
+because the scale between the two clouds is unknown until registration is done.
+
+Load with :func:`load_config`; an unknown key or a value of the wrong type raises
+:class:`ConfigError` whose message names the key path and the expected type.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+
+class ConfigError(ValueError):
+    """A configuration file is unreadable, not valid YAML, or does not match the schema."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class PreprocessConfig(_Strict):
+    """Early downsampling: clouds are reduced to a working size before anything quadratic."""
+
+    max_points: int = Field(6000, ge=100, description="working size of each cloud (voxel downsampling)")
+    normal_neighbours: int = Field(16, ge=5, le=100, description="k of the kNN used for PCA normals")
+
+
+class SupervoxelConfig(_Strict):
+    """VCCS-like supervoxels; their centroids are the salient points."""
+
+    voxel_ratio: float = Field(0.02, gt=0, lt=0.5, description="voxel size / cloud diameter")
+    seed_ratio: float = Field(0.09, gt=0, lt=1, description="seed spacing / cloud diameter")
+    spatial_weight: float = Field(1.0, ge=0)
+    normal_weight: float = Field(1.0, ge=0)
+    iterations: int = Field(3, ge=1, le=20, description="seed refinement rounds")
+    min_voxels: int = Field(2, ge=1, description="drop supervoxels with fewer voxels")
+    max_salient: int = Field(150, ge=10, description="cap on salient points per cloud")
+
+
+class TripletConfig(_Strict):
+    """Random wide-baseline triangles on the salient points."""
+
+    n_source: int = Field(1500, ge=10, description="source triangles per round")
+    n_target: int = Field(12000, ge=10, description="target triangles per round")
+    min_edge_ratio: float = Field(0.5, gt=0, le=1, description="edge >= ratio * overlap-region diameter")
+    min_angle_deg: float = Field(12.0, ge=0, lt=60, description="reject near-degenerate triangles")
+
+
+class TensorConfig(_Strict):
+    """Sparse third-order tensor from k nearest neighbours in descriptor space."""
+
+    knn: int = Field(40, ge=1, le=1000, description="target triangles matched per source triangle")
+    sigma: float = Field(0.0, ge=0, description="descriptor bandwidth; 0 = mean kNN distance")
+    first_order_weight: float = Field(1.0, ge=0, description="weight of the point-to-point term")
+    first_order_sigma: float = Field(0.05, gt=0, description="point term bandwidth / target diameter")
+
+
+class PowerIterationConfig(_Strict):
+    iterations: int = Field(40, ge=1, le=1000)
+    tol: float = Field(1e-6, gt=0)
+    normalisation_rounds: int = Field(5, ge=0, le=50, description="row/column L2 normalisations per step")
+
+
+class RansacConfig(_Strict):
+    iterations: int = Field(2000, ge=10)
+    candidates: int = Field(3, ge=1, le=10, description="correspondences kept per source point")
+    inlier_ratio: float = Field(0.05, gt=0, lt=1, description="inlier threshold / target diameter")
+    min_inliers: int = Field(6, ge=3, description="fewer inliers = too weak evidence: failed status")
+
+
+class OuterLoopConfig(_Strict):
+    max_iterations: int = Field(4, ge=1, le=50)
+    tol: float = Field(1e-3, gt=0, description="stop when the relative transform change is below")
+
+
+class RefineConfig(_Strict):
+    """Trimmed scaled ICP on the (downsampled) full clouds after GCTR."""
+
+    enabled: bool = True
+    iterations: int = Field(30, ge=1, le=500)
+    start_ratio: float = Field(0.05, gt=0, description="initial trimming distance / target diameter")
+    end_ratio: float = Field(0.01, gt=0, description="final trimming distance / target diameter")
+
+
+class EngineConfig(_Strict):
+    """All parameters of the GCTR engine."""
+
+    preprocess: PreprocessConfig = PreprocessConfig()
+    supervoxel: SupervoxelConfig = SupervoxelConfig()
+    triplets: TripletConfig = TripletConfig()
+    tensor: TensorConfig = TensorConfig()
+    power_iteration: PowerIterationConfig = PowerIterationConfig()
+    ransac: RansacConfig = RansacConfig()
+    outer: OuterLoopConfig = OuterLoopConfig()
+    refine: RefineConfig = RefineConfig()
+    overlap: Literal["auto"] | float = Field("auto", description="'auto' searches 0.25/0.5/0.75/1.0")
+    overlap_candidates: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0)
+    scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
+    scale_bounds: tuple[float, float] = (0.1, 10.0)
+    min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
+
+    @field_validator("overlap")
+    @classmethod
+    def _overlap_range(cls, value: Any) -> Any:
+        if value != "auto" and not 0.0 < float(value) <= 1.0:
+            raise ValueError("overlap must be 'auto' or a number in (0, 1]")
+        return value
+
+    @field_validator("overlap_candidates")
+    @classmethod
+    def _candidates_range(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if not value or any(not 0.0 < v <= 1.0 for v in value):
+            raise ValueError("overlap_candidates must be a non-empty list of numbers in (0, 1]")
+        return value
+
+    @field_validator("scale_bounds")
+    @classmethod
+    def _bounds_order(cls, value: tuple[float, float]) -> tuple[float, float]:
+        if not 0.0 < value[0] < value[1]:
+            raise ValueError("scale_bounds must be [low, high] with 0 < low < high")
+        return value
+
+
+class SuccessConfig(_Strict):
+    """Thresholds that decide the `success` column of tm_errors.csv."""
+
+    rotation_deg: float = Field(5.0, gt=0)
+    translation_rel: float = Field(0.05, gt=0, description="translation error / target bbox diagonal")
+    scale: float = Field(0.05, gt=0, description="|s_est / s_gt - 1|")
+
+
+class BatchConfig(_Strict):
+    workers: int = Field(0, ge=0, description="worker processes; 0 = one per core")
+    time_limit_s: float = Field(600.0, gt=0, description="per-pair time limit")
+
+
+class Config(_Strict):
+    """The whole configuration file."""
+
+    seed: int = Field(0, ge=0, description="base seed; each pair's seed derives from it and the pair id")
+    method: Literal["gctr"] = "gctr"
+    engine: EngineConfig = EngineConfig()
+    success: SuccessConfig = SuccessConfig()
+    batch: BatchConfig = BatchConfig()
+
+    @model_validator(mode="after")
+    def _refine_ratios(self) -> "Config":
+        r = self.engine.refine
+        if r.end_ratio > r.start_ratio:
+            raise ValueError("engine.refine.end_ratio must not exceed engine.refine.start_ratio")
+        return self
+
+
+def _format_validation_error(err: ValidationError, source: str) -> str:
+    lines = [f"invalid config {source}:"]
+    for e in err.errors():
+        path = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        if e["type"] == "extra_forbidden":
+            lines.append(f"  {path}: unknown key")
+        else:
+            lines.append(f"  {path}: {e['msg']} (got {e.get('input')!r})")
+    return "\n".join(lines)
+
+
+def config_from_dict(data: dict[str, Any] | None, source: str = "<dict>") -> Config:
+    """Validate a plain mapping (e.g. parsed YAML) into a :class:`Config`."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"invalid config {source}: top level must be a mapping, got {type(data).__name__}")
+    try:
+        return Config.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(err, source)) from None
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read and validate a YAML config; ``None`` gives the defaults."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {p} does not exist")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"config file {p} is not valid YAML: {err}") from None
+    return config_from_dict(data, str(p))
+
+
+def config_to_yaml(config: Config) -> str:
+    """Serialise a resolved config (all defaults filled in) as YAML."""
+    data = config.model_dump(mode="json")
+    return yaml.safe_dump(data, sort_keys=False)

@@ -1,0 +1,48 @@
+"""The result record of one registration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """Outcome of registering one source cloud onto one target cloud.
+
+    ``transform`` is the 4x4 similarity ``[[s*R, t], [0, 0, 0, 1]]`` mapping source points onto the
+    target (``target ~ transform @ [source; 1]``) in the original coordinates of the inputs.
+
+    ``fitness`` is the fraction of (downsampled) source points that, after the transform, have a
+    target point within the inlier distance (1% of the target diameter); ``inlier_rmse`` is the RMS
+    of those distances, in target units. ``status`` is ``"ok"`` or ``"failed"``; a failed result
+    still carries the best transform found (or the identity) and a ``message`` saying why.
+    """
+
+    transform: np.ndarray
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    fitness: float
+    inlier_rmse: float
+    n_inliers: int
+    iterations: int
+    status: str
+    message: str
+    runtime_s: float
+    seed: int
+    overlap: float = float("nan")
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def __repr__(self) -> str:
+        return (
+            f"RegistrationResult(status={self.status!r}, scale={self.scale:.6g}, "
+            f"fitness={self.fitness:.3f}, inlier_rmse={self.inlier_rmse:.4g}, n_inliers={self.n_inliers}, "
+            f"iterations={self.iterations}, overlap={self.overlap}, runtime_s={self.runtime_s:.3f}, "
+            f"message={self.message!r})"
+        )

@@ -1,0 +1,85 @@
+"""Errors of an estimated similarity against ground truth (the paper's R, T, S and TM errors)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def decompose_similarity(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Split ``[[s*R, t], [0, 1]]`` into (s, R, t); s is the cube root of det of the 3x3 block."""
+    T = np.asarray(T, dtype=float)
+    A = T[:3, :3]
+    det = float(np.linalg.det(A))
+    s = abs(det) ** (1.0 / 3.0)
+    if s == 0.0:
+        raise ValueError("matrix has a singular 3x3 block")
+    return s, A / s, T[:3, 3].copy()
+
+
+def compose_similarity(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Build the 4x4 matrix ``[[s*R, t], [0, 0, 0, 1]]``."""
+    T = np.eye(4)
+    T[:3, :3] = scale * np.asarray(rotation, dtype=float)
+    T[:3, 3] = np.asarray(translation, dtype=float)
+    return T
+
+
+def is_similarity(T: np.ndarray, tol: float = 1e-4) -> tuple[bool, str]:
+    """Check that T is a finite 4x4 similarity with a proper rotation; returns (ok, reason)."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return False, f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return False, "matrix has non-finite entries"
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=tol):
+        return False, f"last row must be 0 0 0 1, got {T[3].tolist()}"
+    A = T[:3, :3]
+    det = np.linalg.det(A)
+    if det <= 0:
+        return False, "3x3 block has a non-positive determinant (reflection or singular)"
+    s = det ** (1.0 / 3.0)
+    R = A / s
+    if not np.allclose(R @ R.T, np.eye(3), atol=tol * 10):
+        return False, "3x3 block is not a scaled rotation (not orthogonal up to scale)"
+    return True, ""
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Geodesic angle of a rotation matrix, in degrees."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+@dataclass(frozen=True)
+class TransformErrors:
+    rot_err_deg: float
+    trans_err: float
+    trans_err_rel: float
+    scale_err: float
+    tm_err: float
+
+    def success(self, rotation_deg: float, translation_rel: float, scale: float) -> bool:
+        return bool(
+            self.rot_err_deg < rotation_deg and self.trans_err_rel < translation_rel and self.scale_err < scale
+        )
+
+
+def transform_errors(T_est: np.ndarray, T_gt: np.ndarray, target_diagonal: float) -> TransformErrors:
+    """Compare two source->target similarities.
+
+    rotation: geodesic angle between the rotation parts; translation: ``||t_est - t_gt||``, absolute
+    and relative to the target's bounding-box diagonal; scale: ``|s_est/s_gt - 1|``;
+    TM: ``||T_est - T_gt||_F`` (the paper's TM error).
+    """
+    s_e, R_e, t_e = decompose_similarity(T_est)
+    s_g, R_g, t_g = decompose_similarity(T_gt)
+    trans = float(np.linalg.norm(t_e - t_g))
+    return TransformErrors(
+        rot_err_deg=rotation_angle_deg(R_e.T @ R_g),
+        trans_err=trans,
+        trans_err_rel=trans / target_diagonal if target_diagonal > 0 else float("inf"),
+        scale_err=abs(s_e / s_g - 1.0),
+        tm_err=float(np.linalg.norm(np.asarray(T_est, float) - np.asarray(T_gt, float))),
+    )
