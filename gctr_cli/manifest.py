@@ -1,0 +1,283 @@
+"""Pair manifests: CSV files listing the (source, target[, ground truth]) pairs of a batch run.
+
+Format (see GUIDE §1): a header row ``pair_id,source,target`` with an optional ``gt`` column; extra
+columns are allowed and ignored; column names are matched case-insensitively after stripping
+whitespace. Cells are stripped, blank lines are skipped, and relative paths are resolved against the
+manifest's own folder. An empty ``gt`` cell means "no ground truth".
+
+Structural problems are fatal (:class:`ManifestError`, naming the file and the line). Whether the
+listed files exist is deliberately *not* checked here: the batch runner reports missing inputs per
+pair so one bad row does not stop a batch.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import os
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from gctr_cli.io import SUPPORTED_EXTENSIONS
+
+__all__ = ["ManifestError", "PairSpec", "build_manifest", "read_manifest", "write_manifest"]
+
+logger = logging.getLogger(__name__)
+
+REQUIRED_COLUMNS = ("pair_id", "source", "target")
+OPTIONAL_COLUMNS = ("gt",)
+_MAX_LISTED = 20  # at most this many names / errors are spelled out in one message
+
+
+class ManifestError(ValueError):
+    """A manifest is missing, unreadable or structurally invalid."""
+
+
+@dataclass(frozen=True)
+class PairSpec:
+    """One registration pair: ``source`` is mapped onto ``target``; ``gt`` is a 4x4 matrix file or None."""
+
+    pair_id: str
+    source: Path
+    target: Path
+    gt: Path | None = None
+
+
+def pair_id_problem(pair_id: str) -> str | None:
+    """Return why ``pair_id`` cannot be used as a file name stem, or None if it is fine."""
+    if not pair_id:
+        return "is empty"
+    for bad, label in (("/", "'/'"), ("\\", "'\\'"), ("\x00", "NUL"), ("..", "'..'")):
+        if bad in pair_id:
+            return f"contains {label}"
+    if any(ord(c) < 32 or ord(c) == 127 for c in pair_id):
+        return "contains a control character"
+    return None
+
+
+def _listing(items: Sequence[str]) -> str:
+    shown = ", ".join(items[:_MAX_LISTED])
+    return shown + (f", ... ({len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else "")
+
+
+def _resolve(cell: str, base: Path) -> Path:
+    p = Path(cell).expanduser()
+    if not p.is_absolute():
+        p = base / p
+    return p.resolve()
+
+
+def read_manifest(path: str | Path) -> list[PairSpec]:
+    """Read and validate a pair manifest; return its pairs in file order with absolute paths.
+
+    Raises :class:`ManifestError` for: a missing/unreadable/empty file, a missing required column,
+    duplicate column names, an empty ``pair_id``/``source``/``target`` cell, a ``pair_id`` that is
+    unsafe as a file name (``/``, ``\\``, NUL, ``..``, control characters), a duplicate ``pair_id``,
+    or a manifest without data rows. All row problems are reported together, with line numbers.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ManifestError(f"{path}: manifest does not exist")
+    if not path.is_file():
+        raise ManifestError(f"{path}: manifest is not a regular file")
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ManifestError(f"{path}: cannot read manifest ({exc.strerror or exc})") from exc
+    if not raw.strip():
+        raise ManifestError(f"{path}: manifest is empty")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ManifestError(f"{path}: manifest is not UTF-8 text (bad byte at offset {exc.start})") from exc
+    base = path.resolve().parent
+
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header: list[str] | None = None
+    header_line = 0
+    try:
+        for row in reader:
+            if any(c.strip() for c in row):
+                header = [c.strip().lower() for c in row]
+                header_line = reader.line_num
+                break
+        if header is None:  # pragma: no cover - guarded by the strip() check above
+            raise ManifestError(f"{path}: manifest is empty")
+
+        dupes = sorted({c for c in header if c and header.count(c) > 1})
+        if dupes:
+            raise ManifestError(f"{path}: line {header_line}: duplicate column name(s) {', '.join(dupes)}")
+        for col in REQUIRED_COLUMNS:
+            if col not in header:
+                raise ManifestError(
+                    f"{path}: line {header_line}: missing required column '{col}' "
+                    f"(header must contain {','.join(REQUIRED_COLUMNS)}[,gt]; found {','.join(header)})"
+                )
+        idx = {c: header.index(c) for c in REQUIRED_COLUMNS + OPTIONAL_COLUMNS if c in header}
+
+        pairs: list[PairSpec] = []
+        errors: list[str] = []
+        seen: dict[str, int] = {}
+        for row in reader:
+            line = reader.line_num
+            if not any(c.strip() for c in row):
+                continue
+            cells = {c: (row[i].strip() if i < len(row) else "") for c, i in idx.items()}
+            row_errors = [f"line {line}: empty '{c}' cell" for c in REQUIRED_COLUMNS if not cells[c]]
+            pid = cells["pair_id"]
+            if pid:
+                problem = pair_id_problem(pid)
+                if problem:
+                    row_errors.append(f"line {line}: pair_id {pid!r} {problem} (unsafe as a file name)")
+                elif pid in seen:
+                    row_errors.append(f"line {line}: duplicate pair_id '{pid}' (first on line {seen[pid]}, again on line {line})")
+                else:
+                    seen[pid] = line
+            if row_errors:
+                errors.extend(row_errors)
+                continue
+            gt_cell = cells.get("gt", "")
+            pairs.append(
+                PairSpec(
+                    pair_id=pid,
+                    source=_resolve(cells["source"], base),
+                    target=_resolve(cells["target"], base),
+                    gt=_resolve(gt_cell, base) if gt_cell else None,
+                )
+            )
+    except csv.Error as exc:
+        raise ManifestError(f"{path}: line {reader.line_num}: malformed CSV ({exc})") from exc
+
+    if errors:
+        more = f"; ... ({len(errors) - _MAX_LISTED} more)" if len(errors) > _MAX_LISTED else ""
+        raise ManifestError(f"{path}: {len(errors)} problem(s): {'; '.join(errors[:_MAX_LISTED])}{more}")
+    if not pairs:
+        raise ManifestError(f"{path}: manifest has a header but no data rows")
+    return pairs
+
+
+def _format_path(p: Path, base: Path) -> str:
+    p = Path(p)
+    if not p.is_absolute():
+        return p.as_posix()
+    try:
+        return p.resolve().relative_to(base).as_posix()
+    except ValueError:
+        return str(p)
+
+
+def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: Path | None = None) -> None:
+    """Write ``pairs`` as a manifest CSV (header ``pair_id,source,target`` plus ``gt`` if any pair has one).
+
+    Paths inside ``relative_to`` (default: the manifest's own folder, which is what
+    :func:`read_manifest` resolves against) are written relative to it with ``/`` separators; other
+    paths are written absolute. The file is written atomically; missing parent folders are created.
+    Raises :class:`ManifestError` for an empty pair list, unsafe or duplicate pair ids.
+    """
+    path = Path(path)
+    if not pairs:
+        raise ManifestError(f"{path}: refusing to write a manifest without pairs")
+    seen: set[str] = set()
+    for p in pairs:
+        problem = pair_id_problem(p.pair_id)
+        if problem:
+            raise ManifestError(f"{path}: pair_id {p.pair_id!r} {problem} (unsafe as a file name)")
+        if p.pair_id in seen:
+            raise ManifestError(f"{path}: duplicate pair_id '{p.pair_id}'")
+        seen.add(p.pair_id)
+
+    base = Path(relative_to) if relative_to is not None else path.parent
+    base = base.resolve()
+    with_gt = any(p.gt is not None for p in pairs)
+    buf = io.StringIO(newline="")
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(list(REQUIRED_COLUMNS) + (["gt"] if with_gt else []))
+    for p in pairs:
+        row = [p.pair_id, _format_path(p.source, base), _format_path(p.target, base)]
+        if with_gt:
+            row.append(_format_path(p.gt, base) if p.gt is not None else "")
+        writer.writerow(row)
+
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(buf.getvalue())
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise ManifestError(f"{path}: cannot write manifest ({exc.strerror or exc})") from exc
+
+
+def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:
+    found: dict[str, list[Path]] = {}
+    for f in sorted(folder.iterdir()):
+        if f.name.startswith(".") or not f.is_file() or f.suffix.lower() not in SUPPORTED_EXTENSIONS:
+            continue
+        found.setdefault(f.stem, []).append(f)
+    ambiguous = {s: fs for s, fs in found.items() if len(fs) > 1}
+    if ambiguous:
+        desc = _listing([f"{s} ({', '.join(f.name for f in fs)})" for s, fs in sorted(ambiguous.items())])
+        raise ManifestError(f"{folder}: {role} folder has several point cloud files with the same stem: {desc}")
+    return {s: fs[0].resolve() for s, fs in found.items()}
+
+
+def build_manifest(
+    source_dir: str | Path, target_dir: str | Path, gt_dir: str | Path | None = None
+) -> list[PairSpec]:
+    """Pair the point clouds of two folders by file stem (``a.ply`` in source with ``a.pcd`` in target).
+
+    Only files with a supported extension are considered (hidden files are ignored); ``pair_id`` is the
+    stem, and the ground truth is ``<gt_dir>/<stem>.txt`` when that file exists. Pairs are sorted by
+    ``pair_id``. Stems present on one side only are logged as a warning; stems unsafe as a pair_id are
+    skipped with a warning. Raises :class:`ManifestError` if a folder is missing, a folder holds two
+    clouds with the same stem, or no stem matches.
+    """
+    sdir, tdir = Path(source_dir), Path(target_dir)
+    for d, role in ((sdir, "source"), (tdir, "target")) + (((Path(gt_dir), "ground-truth"),) if gt_dir else ()):
+        if not d.is_dir():
+            raise ManifestError(f"{d}: {role} folder does not exist" if not d.exists() else f"{d}: {role} path is not a folder")
+    if sdir.resolve() == tdir.resolve():
+        raise ManifestError(f"{sdir}: source and target folders are the same; every file would pair with itself")
+
+    src = _cloud_files_by_stem(sdir, "source")
+    tgt = _cloud_files_by_stem(tdir, "target")
+    common = sorted(set(src) & set(tgt))
+    only_src = sorted(set(src) - set(tgt))
+    only_tgt = sorted(set(tgt) - set(src))
+    if only_src or only_tgt:
+        logger.warning(
+            "unmatched stems: %d only in %s [%s]; %d only in %s [%s]",
+            len(only_src), sdir, _listing(only_src), len(only_tgt), tdir, _listing(only_tgt),
+        )
+    unsafe = [s for s in common if pair_id_problem(s)]
+    if unsafe:
+        logger.warning("skipping %d stem(s) unsafe as pair_id: %s", len(unsafe), _listing(unsafe))
+        common = [s for s in common if s not in unsafe]
+    if not common:
+        raise ManifestError(
+            f"no matching file stems between {sdir} ({len(src)} clouds) and {tdir} ({len(tgt)} clouds)"
+        )
+
+    pairs = []
+    missing_gt = []
+    for stem in common:
+        gt = None
+        if gt_dir is not None:
+            cand = Path(gt_dir) / f"{stem}.txt"
+            if cand.is_file():
+                gt = cand.resolve()
+            else:
+                missing_gt.append(stem)
+        pairs.append(PairSpec(stem, src[stem], tgt[stem], gt))
+    if missing_gt:
+        logger.warning("%d pair(s) have no ground truth in %s: %s", len(missing_gt), gt_dir, _listing(missing_gt))
+    return pairs

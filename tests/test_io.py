@@ -1,0 +1,788 @@
+"""Tests for gctr_cli.io: point cloud readers/writers, validation, matrix I/O."""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gctr_cli import io as gio
+from gctr_cli.io import (
+    SUPPORTED_EXTENSIONS,
+    MatrixError,
+    PointCloudError,
+    format_matrix,
+    load_point_cloud,
+    read_matrix,
+    save_point_cloud,
+    write_matrix,
+)
+
+DATA = Path("/work/shared/data")
+BUN000 = DATA / "stanford/bunny/scans/bun000.ply"
+ZIPPER4 = DATA / "stanford/bunny/reconstruction/bun_zipper_res4.ply"
+REDKITCHEN0 = DATA / "real/3dmatch_redkitchen/cloud_bin_0.ply"
+PCD_DIR = DATA / "stanford/bunny/pcl_pcd"
+GT_BUN4 = PCD_DIR / "gt_bun4_to_bun0.txt"
+
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="shared real data not available")
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def cloud(rng) -> np.ndarray:
+    return rng.normal(size=(200, 3))
+
+
+def o3d():
+    return pytest.importorskip("open3d")
+
+
+def o3d_cloud(points: np.ndarray):
+    m = o3d()
+    return m.geometry.PointCloud(m.utility.Vector3dVector(points))
+
+
+def ply_header(fmt: str, elements: list[tuple[str, int, list[str]]]) -> bytes:
+    lines = ["ply", f"format {fmt} 1.0", "comment test file"]
+    for name, count, props in elements:
+        lines.append(f"element {name} {count}")
+        lines += [f"property {p}" for p in props]
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def assert_error(exc_info, path: Path, *keywords: str) -> None:
+    msg = str(exc_info.value)
+    assert path.name in msg, msg
+    for kw in keywords:
+        assert kw in msg, f"{kw!r} not in {msg!r}"
+
+
+# ----------------------------------------------------------------------------------------------------
+# Real data files
+# ----------------------------------------------------------------------------------------------------
+
+
+@needs_data
+def test_real_ascii_ply_with_range_grid():
+    pts = load_point_cloud(BUN000)
+    assert pts.shape == (40256, 3) and pts.dtype == np.float64
+    # first vertex line of the file
+    np.testing.assert_array_equal(pts[0], [-0.06325, 0.0359793, 0.0420873])
+    ref = np.asarray(o3d().io.read_point_cloud(str(BUN000)).points)
+    np.testing.assert_array_equal(pts, ref)
+
+
+@needs_data
+def test_real_ascii_ply_with_faces_and_extra_properties():
+    pts = load_point_cloud(ZIPPER4)
+    assert pts.shape == (453, 3)
+    np.testing.assert_array_equal(pts[0], [-0.0312216, 0.126304, 0.00514924])
+    np.testing.assert_array_equal(pts[1], [-0.0446774, 0.131204, 0.00570479])
+    ref = np.asarray(o3d().io.read_point_cloud(str(ZIPPER4)).points)
+    np.testing.assert_array_equal(pts, ref)
+
+
+@needs_data
+def test_real_binary_ply():
+    pts = load_point_cloud(REDKITCHEN0)
+    assert pts.shape == (258342, 3)
+    raw = REDKITCHEN0.read_bytes()
+    body = raw[raw.index(b"end_header\n") + len(b"end_header\n") :]
+    np.testing.assert_array_equal(pts, np.frombuffer(body, "<f4").reshape(-1, 3).astype(np.float64))
+    ref = np.asarray(o3d().io.read_point_cloud(str(REDKITCHEN0)).points)
+    np.testing.assert_array_equal(pts, ref)
+
+
+@needs_data
+@pytest.mark.parametrize(
+    "name, n, first",
+    [
+        ("bun0.pcd", 397, [0.0054215998, 0.11349, 0.040748999]),  # has normals + curvature columns
+        ("bun4.pcd", 361, [0.053026, 0.11349, 0.077131]),  # VERSION .5 header
+        ("bunny.pcd", 397, [0.0054216, 0.11349, 0.040749]),
+    ],
+)
+def test_real_ascii_pcd(name, n, first):
+    path = PCD_DIR / name
+    pts = load_point_cloud(path)
+    assert pts.shape == (n, 3)
+    np.testing.assert_array_equal(pts[0], first)
+    np.testing.assert_array_equal(pts, np.asarray(o3d().io.read_point_cloud(str(path)).points))
+
+
+@needs_data
+def test_real_gt_matrix_with_comment_lines():
+    T = read_matrix(GT_BUN4)
+    assert T.shape == (4, 4)
+    assert T[0, 0] == 0.826350588 and T[2, 3] == -0.0109223
+    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+    R = T[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------------
+# PLY
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_round_trip_exact(tmp_path, cloud, binary):
+    path = tmp_path / "c.ply"
+    save_point_cloud(path, cloud, binary=binary)
+    head = path.read_bytes()[:80]
+    assert (b"binary_little_endian" in head) == binary
+    np.testing.assert_array_equal(load_point_cloud(path), cloud)
+    # and Open3D reads what we write
+    np.testing.assert_array_equal(np.asarray(o3d().io.read_point_cloud(str(path)).points), cloud)
+
+
+def test_ply_written_by_open3d(tmp_path, cloud):
+    pc = o3d_cloud(cloud)
+    pc.normals = o3d().utility.Vector3dVector(np.tile([0.0, 0.0, 1.0], (len(cloud), 1)))
+    path = tmp_path / "o3d.ply"
+    o3d().io.write_point_cloud(str(path), pc, write_ascii=False)
+    np.testing.assert_array_equal(load_point_cloud(path), cloud)
+
+
+def test_ply_big_endian_mixed_types_and_trailing_faces(tmp_path, rng):
+    n = 50
+    pts = rng.normal(size=(n, 3)).astype(">f4")
+    dt = np.dtype([("red", "u1"), ("x", ">f4"), ("y", ">f4"), ("intensity", ">i2"), ("z", ">f4")])
+    rec = np.zeros(n, dt)
+    rec["red"], rec["x"], rec["y"], rec["z"] = 7, pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["intensity"] = -3
+    faces = b"".join(struct.pack(">Biii", 3, i, i + 1, i + 2) for i in range(10))
+    hdr = ply_header(
+        "binary_big_endian",
+        [
+            ("vertex", n, ["uchar red", "float x", "float y", "short intensity", "float z"]),
+            ("face", 10, ["list uchar int vertex_indices"]),
+        ],
+    )
+    path = tmp_path / "be.ply"
+    path.write_bytes(hdr + rec.tobytes() + faces)
+    np.testing.assert_array_equal(load_point_cloud(path), pts.astype(np.float64))
+
+
+def test_ply_integer_coordinates(tmp_path, rng):
+    pts = rng.integers(-1000, 1000, size=(30, 3)).astype("<i4")
+    path = tmp_path / "int.ply"
+    path.write_bytes(ply_header("binary_little_endian", [("vertex", 30, ["int x", "int y", "int z"])]) + pts.tobytes())
+    out = load_point_cloud(path)
+    assert out.dtype == np.float64
+    np.testing.assert_array_equal(out, pts)
+
+
+def test_ply_binary_element_with_lists_before_vertex(tmp_path, rng):
+    pts = rng.normal(size=(20, 3))
+    # element 'grid' with a list property comes *before* the vertices; the reader must walk it
+    grid = struct.pack("<Bi", 1, 5) + struct.pack("<B", 0) + struct.pack("<Biii", 3, 1, 2, 3)
+    hdr = ply_header(
+        "binary_little_endian",
+        [("grid", 3, ["list uchar int idx"]), ("vertex", 20, ["double x", "double y", "double z"])],
+    )
+    path = tmp_path / "pre.ply"
+    path.write_bytes(hdr + grid + pts.astype("<f8").tobytes())
+    np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def test_ply_binary_vertex_with_list_property(tmp_path, rng):
+    pts = rng.normal(size=(15, 3))
+    body = b"".join(
+        struct.pack("<d", p[0]) + struct.pack("<B", k) + struct.pack(f"<{k}h", *range(k)) + struct.pack("<dd", p[1], p[2])
+        for k, p in zip(range(15), pts)
+    )
+    hdr = ply_header(
+        "binary_little_endian", [("vertex", 15, ["double x", "list uchar short tags", "double y", "double z"])]
+    )
+    path = tmp_path / "vl.ply"
+    path.write_bytes(hdr + body)
+    np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def test_ply_ascii_element_before_vertex_and_list_in_vertex(tmp_path, rng):
+    pts = np.round(rng.normal(size=(12, 3)), 6)
+    lines = ["2 7 8", "0", "1 9"]  # 'grid' element with a list
+    for i, p in enumerate(pts.tolist()):
+        k = i % 3
+        lines.append(" ".join([repr(p[0]), str(k)] + ["4"] * k + [repr(p[1]), repr(p[2])]))
+    hdr = ply_header(
+        "ascii",
+        [("grid", 3, ["list uchar int idx"]), ("vertex", 12, ["float x", "list uchar int tags", "float y", "float z"])],
+    )
+    path = tmp_path / "al.ply"
+    path.write_bytes(hdr + ("\n".join(lines) + "\n").encode())
+    np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def test_ply_crlf_header(tmp_path, cloud):
+    body = "\r\n".join(" ".join(repr(v) for v in p) for p in cloud.tolist())
+    hdr = "ply\r\nformat ascii 1.0\r\nelement vertex 200\r\nproperty double x\r\nproperty double y\r\nproperty double z\r\nend_header\r\n"
+    path = tmp_path / "crlf.ply"
+    path.write_bytes((hdr + body + "\r\n").encode())
+    np.testing.assert_array_equal(load_point_cloud(path), cloud)
+
+
+def test_ply_truncated_binary(tmp_path, cloud):
+    path = tmp_path / "trunc.ply"
+    save_point_cloud(path, cloud)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 100])
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "truncated", "header declares 200 vertices", f"only {200 * 24 - 100} bytes")
+
+
+def test_ply_truncated_ascii(tmp_path, cloud):
+    path = tmp_path / "trunc_ascii.ply"
+    save_point_cloud(path, cloud, binary=False)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "truncated", "header declares 200 vertices")
+
+
+def test_ply_random_bytes(tmp_path, rng):
+    path = tmp_path / "noise.ply"
+    path.write_bytes(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "not a PLY file", "missing 'ply' magic")
+
+
+@pytest.mark.parametrize(
+    "header, keyword",
+    [
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n", "end_header"),
+        (b"ply\nelement vertex 3\nproperty float x\nend_header\n", "no 'format' line"),
+        (b"ply\nformat ascii 1.0\nelement face 3\nproperty list uchar int v\nend_header\n", "no 'vertex' element"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nend_header\n", "no z field"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float128 x\nend_header\n", "unknown property type"),
+        (b"ply\nformat ascii 1.0\nelement vertex -3\nend_header\n", "bad element count"),
+        (b"ply\nformat binary_middle_endian 1.0\nend_header\n", "unsupported format"),
+        (b"ply\nformat ascii 1.0\nvertices 3\nend_header\n", "unrecognised keyword"),
+    ],
+)
+def test_ply_broken_headers(tmp_path, header, keyword):
+    path = tmp_path / "broken.ply"
+    path.write_bytes(header + b"1 2 3\n4 5 6\n7 8 9\n")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, keyword)
+
+
+def test_ply_non_numeric_ascii_value(tmp_path):
+    path = tmp_path / "word.ply"
+    rows = "\n".join(f"{i} {i * i} {i % 3}" for i in range(20)).replace("9 81", "9 abc")
+    path.write_bytes(ply_header("ascii", [("vertex", 20, ["float x", "float y", "float z"])]) + rows.encode())
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "non-numeric value 'abc'")
+
+
+# ----------------------------------------------------------------------------------------------------
+# PCD
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_pcd_round_trip_exact(tmp_path, cloud, binary):
+    path = tmp_path / "c.pcd"
+    save_point_cloud(path, cloud, binary=binary)
+    assert (b"DATA binary\n" in path.read_bytes()[:400]) == binary
+    np.testing.assert_array_equal(load_point_cloud(path), cloud)
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_pcd_written_by_open3d_binary(tmp_path, rng, compressed):
+    pts = rng.normal(size=(3000, 3))
+    pc = o3d_cloud(pts)
+    pc.estimate_normals()  # extra fields after x y z
+    path = tmp_path / ("comp.pcd" if compressed else "bin.pcd")
+    assert o3d().io.write_point_cloud(str(path), pc, write_ascii=False, compressed=compressed)
+    data = path.read_bytes()
+    assert (b"DATA binary_compressed" in data) == compressed
+    out = load_point_cloud(path)
+    assert out.shape == (3000, 3)
+    # Open3D stores PCD coordinates as float32
+    np.testing.assert_array_equal(out, pts.astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(out, np.asarray(o3d().io.read_point_cloud(str(path)).points))
+
+
+def test_lzf_repeating_patterns(tmp_path):
+    # Highly repetitive data exercises long and overlapping back references.
+    n = 2000
+    pts = np.zeros((n, 3), np.float32)
+    pts[:, 0] = np.arange(n) % 4
+    pts[:, 1] = 1.0
+    pts[:, 2] = np.arange(n) // 500
+    path = tmp_path / "rep.pcd"
+    o3d().io.write_point_cloud(str(path), o3d_cloud(pts.astype(np.float64)), write_ascii=False, compressed=True)
+    csize, usize = struct.unpack("<II", path.read_bytes().split(b"DATA binary_compressed\n", 1)[1][:8])
+    assert csize < usize / 10  # really compressed
+    np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def test_pcd_binary_field_order_padding_and_counts(tmp_path, rng):
+    n = 40
+    pts = rng.normal(size=(n, 3))
+    dt = np.dtype([("y", "<f8"), ("pad", "u1", (3,)), ("rgb", "<u4"), ("x", "<f8"), ("hist", "<f4", (4,)), ("z", "<f8")])
+    rec = np.zeros(n, dt)
+    rec["x"], rec["y"], rec["z"] = pts.T
+    hdr = (
+        "VERSION 0.7\nFIELDS y _ rgb x hist z\nSIZE 8 1 4 8 4 8\nTYPE F U U F F F\nCOUNT 1 3 1 1 4 1\n"
+        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+    )
+    path = tmp_path / "fields.pcd"
+    path.write_bytes(hdr.encode() + rec.tobytes())
+    np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def test_pcd_truncated_binary(tmp_path, cloud):
+    path = tmp_path / "trunc.pcd"
+    save_point_cloud(path, cloud)
+    data = path.read_bytes()
+    path.write_bytes(data[:-24])
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "truncated", "header declares 200 points")
+
+
+def test_pcd_truncated_compressed(tmp_path, cloud):
+    path = tmp_path / "trunc_c.pcd"
+    o3d().io.write_point_cloud(str(path), o3d_cloud(cloud), write_ascii=False, compressed=True)
+    data = path.read_bytes()
+    path.write_bytes(data[:-50])
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "truncated", "compressed bytes")
+
+
+def test_pcd_random_bytes(tmp_path, rng):
+    path = tmp_path / "noise.pcd"
+    path.write_bytes(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "not a PCD file")
+
+
+_GOOD_PCD = {
+    "VERSION": "0.7",
+    "FIELDS": "x y z",
+    "SIZE": "4 4 4",
+    "TYPE": "F F F",
+    "COUNT": "1 1 1",
+    "WIDTH": "3",
+    "HEIGHT": "1",
+    "POINTS": "3",
+    "DATA": "ascii",
+}
+
+
+@pytest.mark.parametrize(
+    "change, keyword",
+    [
+        ({"FIELDS": None}, "missing FIELDS"),
+        ({"FIELDS": "x y w"}, "no z field"),
+        ({"FIELDS": "a b c"}, "no x/y/z fields"),
+        ({"POINTS": "many"}, "bad POINTS value"),
+        ({"POINTS": "-5"}, "bad POINTS value"),
+        ({"DATA": "zipped"}, "unknown DATA type 'zipped'"),
+        ({"DATA": None}, "missing DATA"),
+        ({"SIZE": "4 4"}, "SIZE has 2 entries but FIELDS has 3"),
+        ({"TYPE": "F F Q"}, "unsupported TYPE/SIZE"),
+        ({"SIZE": None}, "missing SIZE"),
+    ],
+)
+def test_pcd_broken_header(tmp_path, change, keyword):
+    fields = {**_GOOD_PCD, **change}
+    hdr = "# .PCD v0.7\n" + "".join(f"{k} {v}\n" for k, v in fields.items() if v is not None)
+    path = tmp_path / "broken.pcd"
+    path.write_text(hdr + "0 0 0\n1 0 0\n0 1 0\n")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path, min_points=3)
+    assert_error(ei, path, keyword)
+
+
+def test_pcd_header_without_points_uses_width_height(tmp_path):
+    fields = {**_GOOD_PCD, "POINTS": None, "WIDTH": "2", "HEIGHT": "2"}
+    hdr = "".join(f"{k} {v}\n" for k, v in fields.items() if v is not None)
+    path = tmp_path / "wh.pcd"
+    path.write_text(hdr + "0 0 0\n1 0 0\n0 1 0\n0 0 1\n")
+    np.testing.assert_array_equal(load_point_cloud(path, min_points=4), [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+
+
+def test_pcd_ascii_fewer_rows_than_declared(tmp_path):
+    hdr = "".join(f"{k} {v}\n" for k, v in {**_GOOD_PCD, "POINTS": "5", "WIDTH": "5"}.items())
+    path = tmp_path / "short.pcd"
+    path.write_text(hdr + "0 0 0\n1 0 0\n0 1 0\n")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path, min_points=3)
+    assert_error(ei, path, "truncated", "header declares 5 points")
+
+
+# ----------------------------------------------------------------------------------------------------
+# Text formats
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ext", [".xyz", ".pts", ".txt"])
+def test_text_round_trip_exact(tmp_path, cloud, ext):
+    path = tmp_path / f"c{ext}"
+    save_point_cloud(path, cloud)
+    np.testing.assert_array_equal(load_point_cloud(path), cloud)
+
+
+def test_pts_written_with_count_line_readable_by_open3d(tmp_path, cloud):
+    path = tmp_path / "c.pts"
+    save_point_cloud(path, cloud)
+    assert path.read_text().splitlines()[0] == "200"
+    np.testing.assert_array_equal(np.asarray(o3d().io.read_point_cloud(str(path)).points), cloud)
+
+
+def test_text_variants(tmp_path, rng):
+    pts = np.round(rng.normal(size=(25, 3)), 5)
+    extra = rng.integers(0, 255, size=(25, 4))
+    rows_ws = [f"{a!r}\t{b!r}  {c!r} {' '.join(map(str, e))}" for (a, b, c), e in zip(pts.tolist(), extra.tolist())]
+    rows_csv = [f"{a!r}, {b!r},{c!r},{e[0]}" for (a, b, c), e in zip(pts.tolist(), extra.tolist())]
+
+    cases = {
+        "ws.xyz": "\n".join(rows_ws),
+        "csv.txt": "X,Y,Z,intensity\n" + "\n".join(rows_csv),
+        "count.pts": "25\n" + "\n".join(rows_ws),
+        "comments.xyz": "# exported\n//X Y Z\n\n" + "\n".join(rows_ws[:10]) + "\n# mid comment\n\n" + "\n".join(rows_ws[10:]),
+        "crlf.txt": "\r\n".join(rows_csv) + "\r\n",
+    }
+    for name, text in cases.items():
+        path = tmp_path / name
+        path.write_text(text, newline="")
+        np.testing.assert_array_equal(load_point_cloud(path), pts, err_msg=name)
+
+
+def test_text_bad_line_reports_line_number(tmp_path):
+    path = tmp_path / "bad.xyz"
+    lines = [f"{i} {i % 5} {i % 7}" for i in range(20)]
+    lines[12] = "1 2 oops"
+    path.write_text("\n".join(lines))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "line 13", "non-numeric value 'oops'")
+
+    lines[12] = "1 2"
+    path.write_text("\n".join(lines))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "line 13", "2 column(s)")
+
+
+def test_text_without_numbers(tmp_path):
+    path = tmp_path / "words.txt"
+    path.write_text("hello world\nthis is not a cloud\n")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "contains no points")
+
+
+def test_text_binary_garbage(tmp_path, rng):
+    path = tmp_path / "garbage.xyz"
+    path.write_bytes(rng.integers(0, 256, 2048, dtype=np.uint8).tobytes() + b"\x00")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert path.name in str(ei.value)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Generic validation
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nope.ply"
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "does not exist")
+
+
+@pytest.mark.parametrize("ext", SUPPORTED_EXTENSIONS)
+def test_empty_file(tmp_path, ext):
+    path = tmp_path / f"empty{ext}"
+    path.write_bytes(b"")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "is empty")
+
+
+def test_unsupported_extension(tmp_path, cloud):
+    path = tmp_path / "cloud.foo"
+    path.write_text("1 2 3\n")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "unsupported extension '.foo'", "supported: .ply, .pcd")
+    with pytest.raises(PointCloudError) as ei:
+        save_point_cloud(tmp_path / "out.las", cloud)
+    assert "unsupported extension '.las'" in str(ei.value)
+
+
+def test_extension_case_insensitive(tmp_path, cloud):
+    path = tmp_path / "UPPER.PLY"
+    save_point_cloud(path, cloud)
+    np.testing.assert_array_equal(load_point_cloud(path), cloud)
+
+
+def test_directory_instead_of_file(tmp_path):
+    d = tmp_path / "dir.ply"
+    d.mkdir()
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(d)
+    assert_error(ei, d, "not a regular file")
+
+
+@pytest.mark.parametrize("n", [0, 1, 2])
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz"])
+def test_too_few_points(tmp_path, n, ext):
+    path = tmp_path / f"few{ext}"
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]])[:n]
+    if ext == ".xyz" and n == 0:
+        path.write_text("# nothing here\n")
+    else:
+        save_point_cloud(path, pts)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    if n == 0:
+        assert_error(ei, path, "no")
+        assert "points" in str(ei.value)
+    else:
+        assert_error(ei, path, f"only {n} finite points", "at least 10")
+
+
+def test_min_points_parameter(tmp_path):
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    path = tmp_path / "tri.ply"
+    save_point_cloud(path, pts)
+    np.testing.assert_array_equal(load_point_cloud(path, min_points=3), pts)
+    with pytest.raises(PointCloudError):
+        load_point_cloud(path, min_points=4)
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz"])
+def test_nan_rows_dropped_with_warning(tmp_path, cloud, caplog, ext):
+    pts = cloud.copy()
+    pts[[3, 50, 51], 1] = np.nan
+    pts[100, 2] = np.inf
+    pts[101, 0] = -np.inf
+    path = tmp_path / f"nan{ext}"
+    save_point_cloud(path, pts)
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        out = load_point_cloud(path)
+    keep = np.ones(len(pts), bool)
+    keep[[3, 50, 51, 100, 101]] = False
+    np.testing.assert_array_equal(out, cloud[keep])
+    recs = [r for r in caplog.records if r.name == "gctr_cli.io" and r.levelno == logging.WARNING]
+    assert len(recs) == 1
+    assert path.name in recs[0].getMessage() and "dropped 5 of 200" in recs[0].getMessage()
+
+
+def test_nan_rows_leave_too_few(tmp_path, cloud, caplog):
+    pts = cloud[:12].copy()
+    pts[:5, 0] = np.nan
+    path = tmp_path / "mostly_nan.ply"
+    save_point_cloud(path, pts)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "only 7 finite points", "after dropping 5 non-finite")
+
+
+def test_all_nan(tmp_path):
+    path = tmp_path / "all_nan.pcd"
+    save_point_cloud(path, np.full((20, 3), np.nan))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "no finite points", "all 20 points are non-finite")
+
+
+def test_identical_points(tmp_path):
+    path = tmp_path / "same.ply"
+    save_point_cloud(path, np.tile([1.5, -2.0, 3.25], (30, 1)))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "all 30 points are identical")
+
+
+def test_collinear_points(tmp_path, rng):
+    t = rng.uniform(-5, 5, size=(100, 1))
+    pts = np.array([1e3, -2e3, 5e2]) + t * np.array([0.3, -0.5, 0.8])
+    path = tmp_path / "line.xyz"
+    save_point_cloud(path, pts)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "collinear")
+
+
+def test_planar_points_accepted(tmp_path, rng):
+    pts = np.c_[rng.normal(size=(100, 2)), np.zeros(100)]
+    path = tmp_path / "plane.ply"
+    save_point_cloud(path, pts)
+    np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".pts", ".txt"])
+@pytest.mark.parametrize("binary", [True, False])
+def test_utm_offset_round_trip_keeps_precision(tmp_path, rng, ext, binary):
+    # UTM-like coordinates: millimetre detail on top of a 1e6 offset needs float64
+    pts = rng.uniform(0, 50, size=(500, 3)) + np.array([4.5e5, 5.4e6, 1e6])
+    path = tmp_path / f"utm{ext}"
+    save_point_cloud(path, pts, binary=binary)
+    out = load_point_cloud(path)
+    np.testing.assert_array_equal(out, pts)
+    assert not np.array_equal(out, pts.astype(np.float32).astype(np.float64))
+
+
+def test_save_validates_shape(tmp_path):
+    with pytest.raises(PointCloudError) as ei:
+        save_point_cloud(tmp_path / "bad.ply", np.zeros((5, 2)))
+    assert "bad.ply" in str(ei.value) and "shape (N, 3)" in str(ei.value)
+
+
+def test_save_is_atomic(tmp_path, cloud, monkeypatch):
+    path = tmp_path / "sub" / "atomic.ply"
+    save_point_cloud(path, cloud)  # creates the parent folder
+    before = path.read_bytes()
+
+    def boom(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(gio.os, "replace", boom)
+    with pytest.raises(PointCloudError) as ei:
+        save_point_cloud(path, cloud[:50])
+    assert_error(ei, path, "cannot write", "No space left")
+    assert path.read_bytes() == before  # old content intact
+    assert sorted(p.name for p in path.parent.iterdir()) == ["atomic.ply"]  # temp file cleaned up
+
+
+def test_save_overwrites_and_leaves_no_temp(tmp_path, cloud):
+    path = tmp_path / "over.pcd"
+    save_point_cloud(path, cloud)
+    save_point_cloud(path, cloud[:20])
+    assert load_point_cloud(path).shape == (20, 3)
+    assert [p.name for p in tmp_path.iterdir()] == ["over.pcd"]
+
+
+def test_saved_file_permissions_follow_umask(tmp_path, cloud):
+    old = os.umask(0o022)
+    try:
+        save_point_cloud(tmp_path / "perm.ply", cloud)
+        write_matrix(tmp_path / "perm.txt", np.eye(4))
+    finally:
+        os.umask(old)
+    assert (tmp_path / "perm.ply").stat().st_mode & 0o777 == 0o644  # not tempfile's 0600
+    assert (tmp_path / "perm.txt").stat().st_mode & 0o777 == 0o644
+
+
+# ----------------------------------------------------------------------------------------------------
+# Matrices
+# ----------------------------------------------------------------------------------------------------
+
+
+def _random_similarity(rng) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    T = np.eye(4)
+    T[:3, :3] = rng.uniform(0.1, 10) * q
+    T[:3, 3] = rng.normal(size=3) * np.array([1e-7, 1e3, 1e6])
+    return T
+
+
+def test_matrix_round_trip_bit_exact(tmp_path, rng):
+    for i in range(20):
+        T = _random_similarity(rng)
+        path = tmp_path / f"m{i}.txt"
+        write_matrix(path, T)
+        back = read_matrix(path)
+        assert back.dtype == np.float64
+        assert np.array_equal(back, T) and back.tobytes() == T.tobytes()
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".txt"] * 20
+
+
+def test_format_matrix_layout(rng):
+    T = _random_similarity(rng)
+    text = format_matrix(T)
+    lines = text.splitlines()
+    assert text.endswith("\n") and len(lines) == 4
+    assert all(len(line.split()) == 4 for line in lines)
+    assert lines[3] == "0 0 0 1"
+    assert float(lines[0].split()[0]) == T[0, 0]
+    with pytest.raises(MatrixError):
+        format_matrix(np.eye(3))
+
+
+def test_read_matrix_lenient_layout(tmp_path):
+    path = tmp_path / "loose.txt"
+    path.write_text("# header comment\n\n1, 0, 0, 5   # trailing note\n  0\t1 0 -2\n\n0 0 1 3.5e-3\n0 0 0 1\n\n")
+    T = read_matrix(path)
+    expected = np.eye(4)
+    expected[:3, 3] = [5, -2, 3.5e-3]
+    np.testing.assert_array_equal(T, expected)
+
+
+@pytest.mark.parametrize(
+    "text, keywords",
+    [
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", ["expected 4 rows", "found 3"]),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n0 0 0 1\n", ["more than 4 rows", "line 5"]),
+        ("1 0 0 0 9\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "5 numbers, expected 4"]),
+        ("1 0 0 0\n0 one 0 0\n0 0 1 0\n0 0 0 1\n", ["line 2", "non-numeric"]),
+        ("1 0 0 nan\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["non-finite", "(0,3)"]),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 1 1\n", ["last row must be '0 0 0 1'"]),
+        ("# only comments\n\n", ["expected 4 rows", "found 0"]),
+    ],
+)
+def test_read_matrix_errors(tmp_path, text, keywords):
+    path = tmp_path / "bad_matrix.txt"
+    path.write_text(text)
+    with pytest.raises(MatrixError) as ei:
+        read_matrix(path)
+    assert_error(ei, path, *keywords)
+
+
+def test_read_matrix_missing_and_empty(tmp_path):
+    missing = tmp_path / "missing.txt"
+    with pytest.raises(MatrixError) as ei:
+        read_matrix(missing)
+    assert_error(ei, missing, "does not exist")
+    empty = tmp_path / "empty.txt"
+    empty.write_bytes(b"")
+    with pytest.raises(MatrixError) as ei:
+        read_matrix(empty)
+    assert_error(ei, empty, "is empty")
+    binary = tmp_path / "binary.txt"
+    binary.write_bytes(b"\xff\xfe\x00\x01" * 10)
+    with pytest.raises(MatrixError) as ei:
+        read_matrix(binary)
+    assert_error(ei, binary, "not a text file")
+
+
+def test_write_matrix_validation(tmp_path):
+    path = tmp_path / "w.txt"
+    with pytest.raises(MatrixError) as ei:
+        write_matrix(path, np.eye(3))
+    assert_error(ei, path, "4x4", "(3, 3)")
+    bad = np.eye(4)
+    bad[1, 2] = np.inf
+    with pytest.raises(MatrixError) as ei:
+        write_matrix(path, bad)
+    assert_error(ei, path, "non-finite")
+    assert not path.exists()
+    write_matrix(tmp_path / "nested" / "dir" / "m.txt", np.eye(4))
+    assert (tmp_path / "nested" / "dir" / "m.txt").read_text() == "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"

@@ -1,0 +1,325 @@
+"""Tests for gctr_cli.manifest: reading, writing and building pair manifests."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+
+from gctr_cli.manifest import ManifestError, PairSpec, build_manifest, read_manifest, write_manifest
+
+
+@pytest.fixture
+def tmp_path(tmp_path: Path) -> Path:
+    """Resolved tmp_path, so comparisons with resolved manifest paths also hold where /tmp is a symlink."""
+    return tmp_path.resolve()
+
+
+def write(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, newline="")
+    return path
+
+
+def assert_error(exc_info, path: Path, *keywords: str) -> None:
+    msg = str(exc_info.value)
+    assert path.name in msg, msg
+    for kw in keywords:
+        assert kw in msg, f"{kw!r} not in {msg!r}"
+
+
+# ----------------------------------------------------------------------------------------------------
+# read_manifest
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_read_resolves_relative_to_manifest_folder(tmp_path, monkeypatch):
+    m = write(
+        tmp_path / "runs" / "pairs.csv",
+        "pair_id,source,target,gt\n"
+        "a,../data/a_src.ply,../data/a_tgt.ply,gt/a.txt\n"
+        "b,sub/b_src.pcd,/abs/b_tgt.xyz,\n",
+    )
+    monkeypatch.chdir(tmp_path.parent)  # must not depend on the working directory
+    pairs = read_manifest(m)
+    assert pairs == [
+        PairSpec("a", tmp_path / "data/a_src.ply", tmp_path / "data/a_tgt.ply", tmp_path / "runs/gt/a.txt"),
+        PairSpec("b", tmp_path / "runs/sub/b_src.pcd", Path("/abs/b_tgt.xyz"), None),
+    ]
+    assert all(p.source.is_absolute() and p.target.is_absolute() for p in pairs)
+
+
+def test_read_relative_manifest_path(tmp_path, monkeypatch):
+    write(tmp_path / "m.csv", "pair_id,source,target\nx,s.ply,t.ply\n")
+    monkeypatch.chdir(tmp_path)
+    (pair,) = read_manifest("m.csv")
+    assert pair.source == tmp_path.resolve() / "s.ply" and pair.gt is None
+
+
+def test_read_lenient_formatting(tmp_path):
+    m = write(
+        tmp_path / "loose.csv",
+        "\ufeff Pair_ID , Source ,notes, TARGET \r\n"
+        "\r\n"
+        "  p1 ,  s1.ply , anything here ,t1.ply  \r\n"
+        ",,,\r\n"
+        '"p,2","dir with space/s 2.ply",x,"t,2.ply"\r\n'
+        "\r\n",
+    )
+    pairs = read_manifest(m)
+    assert [p.pair_id for p in pairs] == ["p1", "p,2"]
+    assert pairs[0].source == tmp_path / "s1.ply" and pairs[0].target == tmp_path / "t1.ply"
+    assert pairs[1].source == tmp_path / "dir with space/s 2.ply" and pairs[1].target == tmp_path / "t,2.ply"
+    assert all(p.gt is None for p in pairs)
+
+
+def test_read_does_not_check_file_existence(tmp_path):
+    m = write(tmp_path / "m.csv", "pair_id,source,target,gt\nghost,nope.ply,nope2.ply,nope.txt\n")
+    (pair,) = read_manifest(m)
+    assert not pair.source.exists() and pair.gt == tmp_path / "nope.txt"
+
+
+def test_pairspec_is_frozen(tmp_path):
+    p = PairSpec("a", tmp_path / "s.ply", tmp_path / "t.ply", None)
+    with pytest.raises(AttributeError):
+        p.pair_id = "b"  # type: ignore[misc]
+
+
+def test_missing_manifest(tmp_path):
+    m = tmp_path / "missing.csv"
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "does not exist")
+
+
+@pytest.mark.parametrize("content", ["", "\n\n  \n"])
+def test_empty_manifest(tmp_path, content):
+    m = write(tmp_path / "empty.csv", content)
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "is empty")
+
+
+def test_manifest_is_directory(tmp_path):
+    d = tmp_path / "dir.csv"
+    d.mkdir()
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(d)
+    assert_error(ei, d, "not a regular file")
+
+
+def test_manifest_not_utf8(tmp_path):
+    m = tmp_path / "latin.csv"
+    m.write_bytes(b"pair_id,source,target\n\xe9,\xff,\xfe\n")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "not UTF-8")
+
+
+def test_header_only(tmp_path):
+    m = write(tmp_path / "header_only.csv", "pair_id,source,target,gt\n\n")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "no data rows")
+
+
+@pytest.mark.parametrize("missing", ["pair_id", "source", "target"])
+def test_missing_required_column(tmp_path, missing):
+    cols = [c for c in ("pair_id", "source", "target", "gt") if c != missing]
+    m = write(tmp_path / "cols.csv", ",".join(cols) + "\n" + ",".join("v" for _ in cols) + "\n")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, f"missing required column '{missing}'", "line 1")
+
+
+def test_duplicate_column(tmp_path):
+    m = write(tmp_path / "dupcol.csv", "pair_id,source,target,source\na,b,c,d\n")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "duplicate column", "source")
+
+
+def test_duplicate_pair_id(tmp_path):
+    m = write(tmp_path / "dup.csv", "pair_id,source,target\nscan1,a.ply,b.ply\nscan2,c.ply,d.ply\n\nscan1,e.ply,f.ply\n")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "duplicate pair_id 'scan1'", "line 2", "line 5")
+
+
+@pytest.mark.parametrize(
+    "row, keyword",
+    [
+        (",a.ply,b.ply", "empty 'pair_id' cell"),
+        ("p,,b.ply", "empty 'source' cell"),
+        ("p,a.ply,   ", "empty 'target' cell"),
+        ("p,a.ply", "empty 'target' cell"),  # short row
+    ],
+)
+def test_empty_cells(tmp_path, row, keyword):
+    m = write(tmp_path / "cells.csv", f"pair_id,source,target\nok,x.ply,y.ply\n{row}\n")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, keyword, "line 3")
+
+
+@pytest.mark.parametrize(
+    "pair_id, keyword",
+    [("a/b", "'/'"), ("a\\b", "'\\'"), ("..", "'..'"), ("x..y", "'..'"), ("a\x00b", "NUL"), ("a\tb", "control")],
+)
+def test_unsafe_pair_id(tmp_path, pair_id, keyword):
+    m = write(tmp_path / "unsafe.csv", f'pair_id,source,target\n"{pair_id}",a.ply,b.ply\n')
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "line 2", keyword, "unsafe as a file name")
+
+
+def test_all_row_problems_reported_together(tmp_path):
+    m = write(tmp_path / "many.csv", "pair_id,source,target\na,,b\nc/d,e,f\na2,x,y\na2,z,w\n")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(m)
+    assert_error(ei, m, "3 problem(s)", "line 2", "line 3", "line 5", "duplicate pair_id 'a2'")
+
+
+def test_safe_unusual_pair_ids_accepted(tmp_path):
+    m = write(tmp_path / "ok.csv", "pair_id,source,target\nbun000-bun045 (v2),a.ply,b.ply\n.hidden,c.ply,d.ply\n")
+    assert [p.pair_id for p in read_manifest(m)] == ["bun000-bun045 (v2)", ".hidden"]
+
+
+# ----------------------------------------------------------------------------------------------------
+# write_manifest
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_write_read_round_trip(tmp_path):
+    out = tmp_path / "out" / "pairs.csv"
+    pairs = [
+        PairSpec("a", tmp_path / "out/data/a.ply", tmp_path / "out/data/a_t.ply", tmp_path / "out/gt/a.txt"),
+        PairSpec("b,c", tmp_path / "elsewhere/b s.ply", tmp_path / "out/b.pcd", None),
+    ]
+    write_manifest(out, pairs)
+    lines = out.read_text().splitlines()
+    assert lines[0] == "pair_id,source,target,gt"
+    assert lines[1] == "a,data/a.ply,data/a_t.ply,gt/a.txt"  # relative inside the manifest folder
+    assert lines[2] == f'"b,c",{tmp_path / "elsewhere/b s.ply"},b.pcd,'  # absolute outside it
+    assert read_manifest(out) == pairs
+    assert [p.name for p in out.parent.iterdir()] == ["pairs.csv"]  # no temp file left
+
+
+def test_write_without_gt_has_no_gt_column(tmp_path):
+    out = tmp_path / "nogt.csv"
+    write_manifest(out, [PairSpec("a", tmp_path / "a.ply", tmp_path / "b.ply", None)])
+    assert out.read_text() == "pair_id,source,target\na,a.ply,b.ply\n"
+
+
+def test_write_relative_to_other_folder(tmp_path):
+    out = tmp_path / "m.csv"
+    pairs = [PairSpec("a", tmp_path / "data/a.ply", tmp_path / "data/b.ply", None)]
+    write_manifest(out, pairs, relative_to=tmp_path / "data")
+    assert out.read_text().splitlines()[1] == "a,a.ply,b.ply"
+
+
+@pytest.mark.parametrize(
+    "pairs, keyword",
+    [
+        ([], "without pairs"),
+        ([PairSpec("a/b", Path("/s.ply"), Path("/t.ply"), None)], "'/'"),
+        ([PairSpec("a", Path("/s.ply"), Path("/t.ply"), None)] * 2, "duplicate pair_id 'a'"),
+    ],
+)
+def test_write_rejects_bad_pairs(tmp_path, pairs, keyword):
+    out = tmp_path / "bad.csv"
+    with pytest.raises(ManifestError) as ei:
+        write_manifest(out, pairs)
+    assert_error(ei, out, keyword)
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------------------------------
+# build_manifest
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def folders(tmp_path):
+    src, tgt, gt = tmp_path / "src", tmp_path / "tgt", tmp_path / "gt"
+    for d in (src, tgt, gt):
+        d.mkdir()
+    for name in ("s01.ply", "s02.PCD", "s03.xyz", "only_src.ply", "notes.md", ".hidden.ply"):
+        (src / name).write_text("x")
+    for name in ("s01.pcd", "s02.ply", "s03.pts", "only_tgt.txt", "readme.json"):
+        (tgt / name).write_text("x")
+    (tgt / "s04.ply").mkdir()  # a folder with a cloud-like name is not a file
+    for name in ("s01.txt", "s03.txt", "unused.txt"):
+        (gt / name).write_text("x")
+    return src, tgt, gt
+
+
+def test_build_matches_stems(folders, caplog):
+    src, tgt, gt = folders
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        pairs = build_manifest(src, tgt, gt)
+    assert [p.pair_id for p in pairs] == ["s01", "s02", "s03"]
+    assert pairs[0] == PairSpec("s01", src / "s01.ply", tgt / "s01.pcd", gt / "s01.txt")
+    assert pairs[1].source == src / "s02.PCD" and pairs[1].target == tgt / "s02.ply" and pairs[1].gt is None
+    assert pairs[2].gt == gt / "s03.txt"
+    text = caplog.text
+    assert "only_src" in text and "only_tgt" in text  # unmatched stems listed
+    assert "s02" in text  # missing ground truth listed
+
+
+def test_build_without_gt(folders):
+    src, tgt, _ = folders
+    pairs = build_manifest(str(src), str(tgt))
+    assert len(pairs) == 3 and all(p.gt is None for p in pairs)
+
+
+def test_build_then_write_then_read(folders, tmp_path):
+    src, tgt, gt = folders
+    pairs = build_manifest(src, tgt, gt)
+    out = tmp_path / "pairs.csv"
+    write_manifest(out, pairs)
+    assert read_manifest(out) == pairs
+    assert "src/s01.ply" in out.read_text()
+
+
+def test_build_no_match(tmp_path):
+    src, tgt = tmp_path / "a", tmp_path / "b"
+    src.mkdir()
+    tgt.mkdir()
+    (src / "one.ply").write_text("x")
+    (tgt / "two.ply").write_text("x")
+    with pytest.raises(ManifestError) as ei:
+        build_manifest(src, tgt)
+    assert "no matching file stems" in str(ei.value) and "a (1 clouds)" in str(ei.value)
+
+
+def test_build_ambiguous_stem(folders):
+    src, tgt, _ = folders
+    (src / "s01.pcd").write_text("x")
+    with pytest.raises(ManifestError) as ei:
+        build_manifest(src, tgt)
+    assert "same stem" in str(ei.value) and "s01.pcd" in str(ei.value) and "s01.ply" in str(ei.value)
+
+
+def test_build_missing_folders_and_same_folder(folders, tmp_path):
+    src, tgt, _ = folders
+    with pytest.raises(ManifestError, match="target folder does not exist"):
+        build_manifest(src, tmp_path / "nope")
+    with pytest.raises(ManifestError, match="ground-truth folder does not exist"):
+        build_manifest(src, tgt, tmp_path / "nogt")
+    with pytest.raises(ManifestError, match="same"):
+        build_manifest(src, src)
+
+
+def test_build_skips_unsafe_stems(tmp_path, caplog):
+    src, tgt = tmp_path / "a", tmp_path / "b"
+    src.mkdir()
+    tgt.mkdir()
+    for d in (src, tgt):
+        (d / "good.ply").write_text("x")
+        (d / "bad..name.ply").write_text("x")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        pairs = build_manifest(src, tgt)
+    assert [p.pair_id for p in pairs] == ["good"]
+    assert "bad..name" in caplog.text
