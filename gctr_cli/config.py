@@ -35,7 +35,7 @@ class SupervoxelConfig(_Strict):
     """VCCS-like supervoxels; their centroids are the salient points."""
 
     voxel_ratio: float = Field(0.02, gt=0, lt=0.5, description="voxel size / cloud diameter")
-    seed_ratio: float = Field(0.09, gt=0, lt=1, description="seed spacing / cloud diameter")
+    seed_ratio: float = Field(0.12, gt=0, lt=1, description="seed spacing / cloud diameter")
     spatial_weight: float = Field(1.0, ge=0)
     normal_weight: float = Field(1.0, ge=0)
     iterations: int = Field(3, ge=1, le=20, description="seed refinement rounds")
@@ -46,8 +46,8 @@ class SupervoxelConfig(_Strict):
 class TripletConfig(_Strict):
     """Random wide-baseline triangles on the salient points."""
 
-    n_source: int = Field(1500, ge=10, description="source triangles per round")
-    n_target: int = Field(12000, ge=10, description="target triangles per round")
+    n_source: int = Field(2000, ge=10, description="source triangles per round")
+    n_target: int = Field(40000, ge=10, description="target triangles per round")
     min_edge_ratio: float = Field(0.5, gt=0, le=1, description="edge >= ratio * overlap-region diameter")
     min_angle_deg: float = Field(12.0, ge=0, lt=60, description="reject near-degenerate triangles")
 
@@ -55,7 +55,8 @@ class TripletConfig(_Strict):
 class TensorConfig(_Strict):
     """Sparse third-order tensor from k nearest neighbours in descriptor space."""
 
-    knn: int = Field(40, ge=1, le=1000, description="target triangles matched per source triangle")
+    knn: int = Field(100, ge=1, le=1000, description="target triangles matched per source triangle")
+    normal_weight: float = Field(1.0, ge=0, description="weight of the vertex-normal terms of the descriptor; 0 = angles only")
     sigma: float = Field(0.0, ge=0, description="descriptor bandwidth; 0 = mean kNN distance")
     first_order_weight: float = Field(1.0, ge=0, description="weight of the point-to-point term")
     first_order_sigma: float = Field(0.05, gt=0, description="point term bandwidth / target diameter")
@@ -68,7 +69,8 @@ class PowerIterationConfig(_Strict):
 
 
 class RansacConfig(_Strict):
-    iterations: int = Field(2000, ge=10)
+    iterations: int = Field(2000, ge=1, description="hypotheses from the best-supported tensor entries")
+    random_samples: int = Field(1000, ge=0, description="extra hypotheses drawn from the soft assignment")
     candidates: int = Field(3, ge=1, le=10, description="correspondences kept per source point")
     inlier_ratio: float = Field(0.05, gt=0, lt=1, description="inlier threshold / target diameter")
     min_inliers: int = Field(6, ge=3, description="fewer inliers = too weak evidence: failed status")
@@ -103,6 +105,7 @@ class EngineConfig(_Strict):
     overlap_candidates: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0)
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = (0.1, 10.0)
+    inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
 
     @field_validator("overlap")

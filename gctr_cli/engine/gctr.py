@@ -1,12 +1,267 @@
-"""Placeholder while the engine is written (replaced in the next commit)."""
+"""GCTR — geometric constraint tensor-based registration: the pipeline that composes the stages.
+
+``register(source, target, config, seed)`` → :class:`RegistrationResult` with the similarity that
+maps the source onto the target, in the original coordinates of the inputs.
+
+Pipeline (paper, Algorithm 1): validate and normalise both clouds (robust centre, robust diameter
+1), downsample, supervoxel centroids as salient points; then for each candidate overlap ratio
+(``overlap: auto`` searches 0.25/0.5/0.75/1.0) an outer loop: wide-baseline triangles → sparse
+third-order tensor + first-order term under the current transform → power iteration → candidate
+correspondences → RANSAC similarity → closed-form refit — until the transform stops changing.
+The overlap whose result has the best robust fitness wins; an optional trimmed scaled ICP polishes
+it. All random draws come from generators seeded with ``seed``.
+"""
+
 from __future__ import annotations
 
+import logging
+import time
+from dataclasses import dataclass
+
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gctr_cli.config import EngineConfig
+from gctr_cli.engine.descriptor import triangle_descriptors, with_ambiguous_permutations
+from gctr_cli.engine.power_iteration import power_iteration
+from gctr_cli.engine.preprocess import (
+    DegenerateCloudError,
+    downsample_to,
+    estimate_normals,
+    normalise,
+    validate_cloud,
+)
+from gctr_cli.engine.ransac import ransac_similarity, sample_from_assignment
+from gctr_cli.engine.refine import Fit, evaluate_fit, trimmed_scaled_icp
 from gctr_cli.engine.result import RegistrationResult
+from gctr_cli.engine.similarity import apply, best_similarity, to_matrix
+from gctr_cli.engine.supervoxel import supervoxels
+from gctr_cli.engine.tensor import SparseTensor3, build_first_order, build_third_order, entry_scores, subset
+from gctr_cli.engine.triplets import diameter, sample_triangles
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _Timer:
+    timings: dict[str, float]
+
+    def add(self, stage: str, start: float) -> float:
+        now = time.perf_counter()
+        self.timings[stage] = self.timings.get(stage, 0.0) + now - start
+        return now
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """One cloud after stage 0/1, in normalised coordinates."""
+
+    points: np.ndarray  # downsampled working cloud
+    tree: cKDTree  # over ``points``
+    salient: np.ndarray  # supervoxel centroids
+    salient_normals: np.ndarray
+    salient_tree: cKDTree
+    diameter: float  # diameter of the salient set
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    transform: np.ndarray  # normalised source -> normalised target
+    n_inliers: int
+    iterations: int
+    fit: Fit
+    coverage: float  # fraction of target points explained by the moved source
+    overlap: float
+
+    @property
+    def score(self) -> float:
+        """Symmetric fitness: penalises a source shrunk onto a small part of the target."""
+        return float(np.sqrt(self.fit.fitness * self.coverage))
+
+
+def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, timer: _Timer) -> _Prepared:
+    t = time.perf_counter()
+    work = downsample_to(points, cfg.supervoxel.voxel_ratio, cfg.preprocess.max_points, rng)
+    normals = estimate_normals(work, cfg.preprocess.normal_neighbours)
+    t = timer.add("preprocess", t)
+    sv = supervoxels(work, normals, voxel=cfg.supervoxel.voxel_ratio, seed_spacing=cfg.supervoxel.seed_ratio,
+                     spatial_weight=cfg.supervoxel.spatial_weight, normal_weight=cfg.supervoxel.normal_weight,
+                     iterations=cfg.supervoxel.iterations, min_voxels=cfg.supervoxel.min_voxels)
+    salient, salient_normals = sv.centroids, sv.normals
+    if len(salient) > cfg.supervoxel.max_salient:
+        keep = np.sort(np.argsort(-sv.sizes, kind="stable")[: cfg.supervoxel.max_salient])
+        salient, salient_normals = salient[keep], salient_normals[keep]
+    timer.add("supervoxels", t)
+    return _Prepared(points=work, tree=cKDTree(work), salient=salient, salient_normals=salient_normals,
+                     salient_tree=cKDTree(salient), diameter=diameter(salient))
+
+
+def _min_edges(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+    a, b, c = points[i], points[j], points[k]
+    return np.minimum(np.minimum(np.linalg.norm(a - b, axis=1), np.linalg.norm(b - c, axis=1)),
+                      np.linalg.norm(c - a, axis=1))
+
+
+def _coverage(src: _Prepared, tgt: _Prepared, T: np.ndarray, distance: float) -> float:
+    """Fraction of target working points with a moved source point within ``distance``."""
+    d, _ = cKDTree(apply(T, src.points)).query(tgt.points, distance_upper_bound=distance)
+    return float(np.isfinite(d).mean())
+
+
+def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: float, cfg: EngineConfig,
+                rng: np.random.Generator, bounds_n: tuple[float, float], timer: _Timer) -> _Candidate | None:
+    """Algorithm 1's outer loop for one overlap ratio (normalised coordinates): power iteration with
+    the current first-order term, tensor-guided RANSAC, closed-form refit, until T stops changing."""
+    S, Q = src.salient, tgt.salient
+    n2 = len(Q)
+    threshold = cfg.ransac.inlier_ratio
+    T: np.ndarray | None = None
+    n_inliers, it = 0, 0
+    for it in range(1, cfg.outer.max_iterations + 1):
+        t = time.perf_counter()
+        H1 = build_first_order(apply(T, S), Q, cfg.tensor.first_order_sigma) if T is not None else None
+        t = timer.add("tensor", t)
+        X, _ = power_iteration(H3, H1, cfg.tensor.first_order_weight, cfg.power_iteration.iterations,
+                               cfg.power_iteration.tol, cfg.power_iteration.normalisation_rounds)
+        t = timer.add("power_iteration", t)
+        scores = entry_scores(H3, X.ravel())
+        n_guided = min(cfg.ransac.iterations, len(scores))
+        top = np.argpartition(-scores, n_guided - 1)[:n_guided] if n_guided < len(scores) else np.arange(len(scores))
+        top = top[np.argsort(-scores[top], kind="stable")]
+        guided_src = np.stack([H3.a[top] // n2, H3.b[top] // n2, H3.c[top] // n2], axis=1)
+        guided_tgt = np.stack([H3.a[top] % n2, H3.b[top] % n2, H3.c[top] % n2], axis=1)
+        rand_src, rand_tgt = sample_from_assignment(X, cfg.ransac.random_samples, cfg.ransac.candidates, rng)
+        rr = ransac_similarity(S, Q, tgt.salient_tree, np.vstack([guided_src, rand_src]),
+                               np.vstack([guided_tgt, rand_tgt]), threshold, bounds_n, min_spread=0.05)
+        t = timer.add("ransac", t)
+        if rr is None or rr.n_inliers < 3:
+            break
+        s, R, tr, _ = best_similarity(S[rr.inliers_src], Q[rr.inliers_tgt], cfg.scale_method, rng)
+        if not bounds_n[0] <= s <= bounds_n[1]:
+            s, R, tr = rr.scale, rr.rotation, rr.translation
+        T_new = to_matrix(s, R, tr)
+        timer.add("similarity", t)
+        converged = T is not None and np.linalg.norm(T_new - T) < cfg.outer.tol
+        T, n_inliers = T_new, rr.n_inliers
+        if converged:
+            break
+    if T is None:
+        return None
+    t = time.perf_counter()
+    fit = evaluate_fit(src.points, tgt.tree, T, cfg.inlier_distance_ratio)
+    cov = _coverage(src, tgt, T, cfg.inlier_distance_ratio)
+    timer.add("scoring", t)
+    return _Candidate(transform=T, n_inliers=n_inliers, iterations=it, fit=fit, coverage=cov, overlap=overlap)
+
+
+def _failed(message: str, seed: int, start: float, timings: dict[str, float],
+            transform: np.ndarray | None = None) -> RegistrationResult:
+    T = np.eye(4) if transform is None else transform
+    s = float(abs(np.linalg.det(T[:3, :3])) ** (1 / 3)) or 1.0
+    return RegistrationResult(transform=T, scale=s, rotation=T[:3, :3] / s, translation=T[:3, 3].copy(),
+                              fitness=0.0, inlier_rmse=float("nan"), n_inliers=0, iterations=0, status="failed",
+                              message=message, runtime_s=time.perf_counter() - start, seed=seed, timings=timings)
 
 
 def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None = None, seed: int = 0, *,
-             source_normals: np.ndarray | None = None, target_normals: np.ndarray | None = None) -> RegistrationResult:
-    raise NotImplementedError
+             source_normals: np.ndarray | None = None,
+             target_normals: np.ndarray | None = None) -> RegistrationResult:
+    """Estimate the similarity mapping ``source`` (N, 3) onto ``target`` (M, 3).
+
+    Normals are re-estimated on the working (downsampled) clouds, so the optional normal arguments
+    are accepted for API symmetry but not required. Returns a result with ``status='failed'`` and a
+    message (never raises) when the inputs are degenerate or the evidence is too weak.
+    """
+    del source_normals, target_normals  # normals are recomputed on the downsampled clouds
+    cfg = config if config is not None else EngineConfig()
+    start = time.perf_counter()
+    timer = _Timer({})
+    try:
+        src_raw = validate_cloud(source, "source")
+        tgt_raw = validate_cloud(target, "target")
+    except DegenerateCloudError as err:
+        return _failed(str(err), seed, start, timer.timings)
+
+    root = np.random.SeedSequence(seed)
+    rng_src, rng_tgt, rng_pool, *rng_overlaps = [np.random.default_rng(s) for s in root.spawn(3 + 4)]
+    ns, nt = normalise(src_raw), normalise(tgt_raw)
+    src = _prepare(ns.points, cfg, rng_src, timer)
+    tgt = _prepare(nt.points, cfg, rng_tgt, timer)
+    if len(src.salient) < 4 or len(tgt.salient) < 4:
+        return _failed(f"too few salient points (source {len(src.salient)}, target {len(tgt.salient)}); "
+                       "the clouds are too small or too sparse for the supervoxel resolution", seed, start,
+                       timer.timings)
+
+    # Scale bounds in normalised units: s_orig = s_norm * size_t / size_s.
+    lo, hi = cfg.scale_bounds
+    ratio = ns.size / nt.size
+    bounds_n = (lo * ratio, hi * ratio)
+
+    overlaps = cfg.overlap_candidates if cfg.overlap == "auto" else (float(cfg.overlap),)
+    t = time.perf_counter()
+    tri = cfg.triplets
+    S, Q = src.salient, tgt.salient
+    src_tri = sample_triangles(S, tri.n_source, tri.min_edge_ratio * min(overlaps) * src.diameter, rng_pool,
+                               tri.min_angle_deg)
+    tgt_tri = sample_triangles(Q, tri.n_target, tri.min_edge_ratio * min(overlaps) * tgt.diameter, rng_pool,
+                               tri.min_angle_deg)
+    tgt_tri = with_ambiguous_permutations(Q, tgt_tri)
+    t = timer.add("triplets", t)
+    w = cfg.tensor.normal_weight
+    H3_all = build_third_order(len(S), src_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
+                               len(Q), tgt_tri, triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w),
+                               cfg.tensor.knn, cfg.tensor.sigma)
+    n2 = len(Q)
+    src_edge = _min_edges(S, H3_all.a // n2, H3_all.b // n2, H3_all.c // n2)
+    tgt_edge = _min_edges(Q, H3_all.a % n2, H3_all.b % n2, H3_all.c % n2)
+    timer.add("tensor", t)
+
+    best: _Candidate | None = None
+    for k, overlap in enumerate(overlaps):
+        keep = ((src_edge >= tri.min_edge_ratio * overlap * src.diameter)
+                & (tgt_edge >= tri.min_edge_ratio * overlap * tgt.diameter))
+        if keep.sum() < 3:
+            continue
+        # A full overlap means both clouds span the same region: their normalised scales agree
+        # within a factor 2; a smaller overlap loosens that prior.
+        prior = (bounds_n[0], bounds_n[1]) if overlap < 0.5 else (max(bounds_n[0], 0.5 * overlap),
+                                                                   min(bounds_n[1], 2.0 / overlap))
+        cand = _outer_loop(src, tgt, subset(H3_all, keep), overlap, cfg, rng_overlaps[k % 4], prior, timer)
+        if cand is None:
+            continue
+        log.debug("overlap %.2f: fitness %.3f coverage %.3f, %d inliers", overlap, cand.fit.fitness,
+                  cand.coverage, cand.n_inliers)
+        if best is None or (cand.score, cand.n_inliers) > (best.score, best.n_inliers):
+            best = cand
+    if best is None:
+        return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
+                       timer.timings)
+
+    T_n, fit = best.transform, best.fit
+    if cfg.refine.enabled:
+        t = time.perf_counter()
+        T_r, _ = trimmed_scaled_icp(src.points, tgt.points, T_n, cfg.refine.iterations, cfg.refine.start_ratio,
+                                    cfg.refine.end_ratio, bounds_n, tgt.tree)
+        fit_r = evaluate_fit(src.points, tgt.tree, T_r, cfg.inlier_distance_ratio)
+        if fit_r.fitness > fit.fitness or (fit_r.fitness == fit.fitness and fit_r.rmse < fit.rmse):
+            T_n, fit = T_r, fit_r
+        timer.add("refine", t)
+
+    T = nt.to_original() @ T_n @ np.linalg.inv(ns.to_original())
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    scale = float(np.linalg.det(T[:3, :3]) ** (1.0 / 3.0))
+    rotation = T[:3, :3] / scale
+    status, message = "ok", ""
+    if best.n_inliers < cfg.ransac.min_inliers:
+        status, message = "failed", (f"too weak evidence: {best.n_inliers} RANSAC inliers "
+                                     f"(need {cfg.ransac.min_inliers})")
+    elif fit.fitness < cfg.min_fitness:
+        status, message = "failed", f"too weak evidence: fitness {fit.fitness:.3f} below {cfg.min_fitness}"
+    elif not lo <= scale <= hi:
+        status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
+    return RegistrationResult(
+        transform=T, scale=scale, rotation=rotation, translation=T[:3, 3].copy(), fitness=fit.fitness,
+        inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
+        message=message, runtime_s=time.perf_counter() - start, seed=seed, overlap=best.overlap,
+        timings=timer.timings,
+    )

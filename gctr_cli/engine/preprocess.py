@@ -1,0 +1,112 @@
+"""Stage 0: validate, centre and normalise a cloud, downsample it early, estimate normals.
+
+Everything later works in *normalised* coordinates where each cloud has its robust centre at the
+origin and a robust diameter of 1, so that every relative length in the config means the same
+thing on both clouds whatever their (unknown) relative scale. The caller composes the
+normalisations back into the reported transform.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+class DegenerateCloudError(ValueError):
+    """The cloud cannot constrain a similarity transform (too few points, collinear, planar...)."""
+
+
+@dataclass(frozen=True)
+class NormalisedCloud:
+    """A cloud in normalised coordinates: ``points = (original - centre) / size``."""
+
+    points: np.ndarray
+    centre: np.ndarray
+    size: float
+
+    def to_original(self) -> np.ndarray:
+        """4x4 similarity from normalised to original coordinates."""
+        T = np.eye(4)
+        T[:3, :3] *= self.size
+        T[:3, 3] = self.centre
+        return T
+
+
+def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.ndarray:
+    """Return a finite (N, 3) float64 array or raise :class:`DegenerateCloudError`.
+
+    Planar clouds are rejected too: a plane leaves the rotation about its normal (and, with a
+    similarity, the scale/translation along it) undetermined.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise DegenerateCloudError(f"{name}: expected an (N, 3) array of points, got shape {pts.shape}")
+    finite = np.all(np.isfinite(pts), axis=1)
+    if not finite.all():
+        pts = pts[finite]
+    if len(pts) < min_points:
+        raise DegenerateCloudError(f"{name}: only {len(pts)} finite points (need at least {min_points})")
+    centred = pts - pts.mean(axis=0)
+    sv = np.linalg.svd(centred[:: max(1, len(pts) // 20000)], compute_uv=False)
+    if sv[0] == 0.0:
+        raise DegenerateCloudError(f"{name}: all {len(pts)} points are identical")
+    if sv[1] < 1e-9 * sv[0]:
+        raise DegenerateCloudError(f"{name}: points are collinear")
+    if sv[2] < 1e-6 * sv[0]:
+        raise DegenerateCloudError(f"{name}: points are planar (registration would be ambiguous)")
+    return pts
+
+
+def robust_centre_and_size(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Median centre and a robust diameter (twice the 90th percentile of distances to the centre).
+
+    Unlike the bounding-box diagonal this barely moves under rotation, moderate crops and a few
+    outliers.
+    """
+    centre = np.median(points, axis=0)
+    r = np.linalg.norm(points - centre, axis=1)
+    size = 2.0 * float(np.percentile(r, 90))
+    if size <= 0:
+        size = 2.0 * float(r.max())
+    return centre, size
+
+
+def normalise(points: np.ndarray) -> NormalisedCloud:
+    """Centre a cloud on its robust centre and scale it to a robust diameter of 1."""
+    centre, size = robust_centre_and_size(points)
+    return NormalisedCloud(points=(points - centre) / size, centre=centre, size=size)
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Centroid of the points in each occupied voxel (equalises density across sensors)."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    out = np.empty((len(counts), 3))
+    for d in range(3):
+        out[:, d] = np.bincount(inverse, weights=points[:, d], minlength=len(counts)) / counts
+    return out
+
+
+def downsample_to(points: np.ndarray, voxel: float, max_points: int, rng: np.random.Generator) -> np.ndarray:
+    """Voxel downsampling at ``voxel``; if still above ``max_points``, a seeded random subset."""
+    if len(points) > 4 * max_points:
+        # Cheap first cut for huge inputs, before any sort-based step.
+        points = points[rng.choice(len(points), 4 * max_points, replace=False)]
+    down = voxel_downsample(points, voxel)
+    if len(down) > max_points:
+        down = down[np.sort(rng.choice(len(down), max_points, replace=False))]
+    return down
+
+
+def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
+    """Unit normals from PCA of the k nearest neighbours (batched 3x3 eigen-decomposition)."""
+    k = min(k, len(points))
+    _, idx = cKDTree(points).query(points, k=k)
+    nbrs = points[idx]
+    centred = nbrs - nbrs.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred)
+    _, vecs = np.linalg.eigh(cov)
+    return vecs[:, :, 0]

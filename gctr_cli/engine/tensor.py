@@ -1,0 +1,90 @@
+"""Stage 3b/4: the sparse third-order tensor (triangle-to-triangle similarity) and the
+first-order term (point-to-point similarity under the current transform).
+
+Both live over the flattened assignment vector ``x[i * n2 + i']`` (source point i matched to
+target point i'). The third-order tensor is never dense: it is a list of entries (a, b, c, value)
+— one per (source triangle, target triangle) pair found among the ``knn`` nearest neighbours in
+descriptor space — with value ``exp(-||f - f'||^2 / sigma^2)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+
+@dataclass(frozen=True)
+class SparseTensor3:
+    """Third-order tensor entries over the flattened (n1 * n2) assignment vector."""
+
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    values: np.ndarray
+    n1: int
+    n2: int
+
+    @property
+    def size(self) -> int:
+        return self.n1 * self.n2
+
+
+@dataclass(frozen=True)
+class SparseVector:
+    """A sparse first-order tensor: entries ``values`` at flattened indices ``index``."""
+
+    index: np.ndarray
+    values: np.ndarray
+    n1: int
+    n2: int
+
+
+def build_third_order(n1: int, src_tri: np.ndarray, f_src: np.ndarray, n2: int, tgt_tri: np.ndarray,
+                      f_tgt: np.ndarray, knn: int, sigma: float = 0.0) -> SparseTensor3:
+    """Match each source triangle to its ``knn`` nearest target triangles in descriptor space.
+
+    ``n1``/``n2`` are the numbers of salient points, ``*_tri`` index triples with vertices in
+    corresponding (canonical) order and ``f_*`` their descriptors. The entry for a matched pair
+    links the three implied point assignments. ``sigma = 0`` uses the mean kNN distance.
+    """
+    if len(src_tri) == 0 or len(tgt_tri) == 0:
+        empty = np.empty(0, dtype=np.int64)
+        return SparseTensor3(empty, empty, empty, np.empty(0), n1, n2)
+    k = min(knn, len(tgt_tri))
+    dist, idx = cKDTree(f_tgt).query(f_src, k=k)
+    dist = dist.reshape(len(src_tri), k)
+    idx = idx.reshape(len(src_tri), k)
+    bandwidth = sigma if sigma > 0 else max(float(dist.mean()), 1e-12)
+    values = np.exp(-((dist / bandwidth) ** 2)).ravel()
+    s = np.repeat(np.arange(len(src_tri)), k)
+    t = idx.ravel()
+    a = src_tri[s, 0] * n2 + tgt_tri[t, 0]
+    b = src_tri[s, 1] * n2 + tgt_tri[t, 1]
+    c = src_tri[s, 2] * n2 + tgt_tri[t, 2]
+    return SparseTensor3(a.astype(np.int64), b.astype(np.int64), c.astype(np.int64), values, n1, n2)
+
+
+def subset(tensor: SparseTensor3, keep: np.ndarray) -> SparseTensor3:
+    """The tensor restricted to the entries selected by a boolean mask."""
+    return SparseTensor3(tensor.a[keep], tensor.b[keep], tensor.c[keep], tensor.values[keep], tensor.n1, tensor.n2)
+
+
+def entry_scores(tensor: SparseTensor3, x: np.ndarray) -> np.ndarray:
+    """Support of each entry under a soft assignment: ``value * x_a * x_b * x_c``."""
+    return tensor.values * x[tensor.a] * x[tensor.b] * x[tensor.c]
+
+
+def build_first_order(src_points_moved: np.ndarray, tgt_points: np.ndarray, sigma: float,
+                      radius_factor: float = 3.0) -> SparseVector:
+    """Point-to-point similarity ``exp(-||T p_i - q_i'||^2 / sigma^2)`` for pairs within
+    ``radius_factor * sigma`` (a sparse radius query; everything farther is ~0)."""
+    n1, n2 = len(src_points_moved), len(tgt_points)
+    tree_t = cKDTree(tgt_points)
+    pairs = cKDTree(src_points_moved).sparse_distance_matrix(tree_t, radius_factor * sigma, output_type="ndarray")
+    if len(pairs) == 0:
+        return SparseVector(np.empty(0, dtype=np.int64), np.empty(0), n1, n2)
+    i, j, d = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), pairs["v"]
+    return SparseVector(i * n2 + j, np.exp(-((d / sigma) ** 2)), n1, n2)

@@ -1,0 +1,56 @@
+"""Stage 2: random wide-baseline triplets (triangles) on the salient points.
+
+A triangle qualifies when all three edges are at least ``min_edge`` long (the paper: 50% of the
+diameter of the overlapping region) and no inner angle is below ``min_angle_deg`` (near-degenerate
+triangles have unstable angle descriptors). Triangles are returned as index triples with their
+vertices in canonical order (see :mod:`gctr_cli.engine.descriptor`) and without duplicates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gctr_cli.engine.descriptor import canonical_order, inner_angle_cosines
+
+
+def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random.Generator,
+                     min_angle_deg: float = 10.0, max_rounds: int = 8) -> np.ndarray:
+    """Up to ``n`` distinct wide-baseline triangles, (M, 3) int, vertices in canonical order."""
+    m = len(points)
+    if m < 3 or n <= 0:
+        return np.empty((0, 3), dtype=np.int64)
+    max_cos = np.cos(np.radians(min_angle_deg))
+    found: list[np.ndarray] = []
+    have = 0
+    batch = max(4 * n, 1000)
+    for _ in range(max_rounds):
+        tri = rng.integers(0, m, size=(batch, 3))
+        tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+        p = points[tri]
+        edges = np.linalg.norm(p[:, [1, 2, 0]] - p, axis=2)
+        ok = np.all(edges >= min_edge, axis=1)
+        tri = tri[ok]
+        cos = inner_angle_cosines(points, tri)
+        tri = tri[np.all(cos <= max_cos, axis=1)]
+        found.append(tri)
+        have += len(tri)
+        if have >= 2 * n:
+            break
+    tri = np.concatenate(found) if found else np.empty((0, 3), dtype=np.int64)
+    if len(tri) == 0:
+        return tri
+    # Deduplicate on the unordered vertex set, keep the first draw (seeded, deterministic).
+    key = np.sort(tri, axis=1)
+    _, first = np.unique(key, axis=0, return_index=True)
+    tri = tri[np.sort(first)][:n]
+    return canonical_order(points, tri)
+
+
+def diameter(points: np.ndarray) -> float:
+    """Largest extent of a point set, estimated via its principal axes (fast, rotation invariant)."""
+    if len(points) < 2:
+        return 0.0
+    centred = points - points.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    proj = centred @ vt.T
+    return float(np.linalg.norm(proj.max(axis=0) - proj.min(axis=0)))
