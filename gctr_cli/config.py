@@ -78,16 +78,17 @@ class RansacConfig(_Strict):
 
 class OuterLoopConfig(_Strict):
     max_iterations: int = Field(4, ge=1, le=50)
-    tol: float = Field(1e-3, gt=0, description="stop when the relative transform change is below")
+    tol: float = Field(0.002, gt=0, description="stop when salient points move less (RMS, / diameter)")
 
 
 class RefineConfig(_Strict):
     """Trimmed scaled ICP on the (downsampled) full clouds after GCTR."""
 
     enabled: bool = True
+    method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
     iterations: int = Field(30, ge=1, le=500)
-    start_ratio: float = Field(0.05, gt=0, description="initial trimming distance / target diameter")
-    end_ratio: float = Field(0.01, gt=0, description="final trimming distance / target diameter")
+    start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / target diameter")
+    end_ratio: float = Field(0.02, gt=0, description="final trimming distance / target diameter")
 
 
 class EngineConfig(_Strict):

@@ -32,7 +32,7 @@ from gctr_cli.engine.preprocess import (
     validate_cloud,
 )
 from gctr_cli.engine.ransac import ransac_similarity, sample_from_assignment
-from gctr_cli.engine.refine import Fit, evaluate_fit, trimmed_scaled_icp
+from gctr_cli.engine.refine import Fit, evaluate_fit, scaled_point_to_plane_icp, trimmed_scaled_icp
 from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.similarity import apply, best_similarity, to_matrix
 from gctr_cli.engine.supervoxel import supervoxels
@@ -57,6 +57,7 @@ class _Prepared:
     """One cloud after stage 0/1, in normalised coordinates."""
 
     points: np.ndarray  # downsampled working cloud
+    normals: np.ndarray  # unit normals of ``points``
     tree: cKDTree  # over ``points``
     salient: np.ndarray  # supervoxel centroids
     salient_normals: np.ndarray
@@ -92,7 +93,7 @@ def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, ti
         keep = np.sort(np.argsort(-sv.sizes, kind="stable")[: cfg.supervoxel.max_salient])
         salient, salient_normals = salient[keep], salient_normals[keep]
     timer.add("supervoxels", t)
-    return _Prepared(points=work, tree=cKDTree(work), salient=salient, salient_normals=salient_normals,
+    return _Prepared(points=work, normals=normals, tree=cKDTree(work), salient=salient, salient_normals=salient_normals,
                      salient_tree=cKDTree(salient), diameter=diameter(salient))
 
 
@@ -141,7 +142,8 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
             s, R, tr = rr.scale, rr.rotation, rr.translation
         T_new = to_matrix(s, R, tr)
         timer.add("similarity", t)
-        converged = T is not None and np.linalg.norm(T_new - T) < cfg.outer.tol
+        # Converged when the salient points stop moving (RMS displacement, normalised units).
+        converged = T is not None and float(np.sqrt(np.mean(np.sum((apply(T_new, S) - apply(T, S)) ** 2, axis=1)))) < cfg.outer.tol
         T, n_inliers = T_new, rr.n_inliers
         if converged:
             break
@@ -201,10 +203,9 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     t = time.perf_counter()
     tri = cfg.triplets
     S, Q = src.salient, tgt.salient
-    src_tri = sample_triangles(S, tri.n_source, tri.min_edge_ratio * min(overlaps) * src.diameter, rng_pool,
-                               tri.min_angle_deg)
-    tgt_tri = sample_triangles(Q, tri.n_target, tri.min_edge_ratio * min(overlaps) * tgt.diameter, rng_pool,
-                               tri.min_angle_deg)
+    min_edge = tri.min_edge_ratio * float(np.sqrt(min(overlaps)))
+    src_tri = sample_triangles(S, tri.n_source, min_edge, rng_pool, tri.min_angle_deg)
+    tgt_tri = sample_triangles(Q, tri.n_target, min_edge, rng_pool, tri.min_angle_deg)
     tgt_tri = with_ambiguous_permutations(Q, tgt_tri)
     t = timer.add("triplets", t)
     w = cfg.tensor.normal_weight
@@ -218,14 +219,17 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
 
     best: _Candidate | None = None
     for k, overlap in enumerate(overlaps):
-        keep = ((src_edge >= tri.min_edge_ratio * overlap * src.diameter)
-                & (tgt_edge >= tri.min_edge_ratio * overlap * tgt.diameter))
+        # A surface patch covering a fraction r of a cloud of (robust) diameter 1 has a diameter of
+        # about sqrt(r): wide-baseline triangles need edges of min_edge_ratio * sqrt(r).
+        region = float(np.sqrt(overlap))
+        keep = (src_edge >= tri.min_edge_ratio * region) & (tgt_edge >= tri.min_edge_ratio * region)
         if keep.sum() < 3:
             continue
-        # A full overlap means both clouds span the same region: their normalised scales agree
-        # within a factor 2; a smaller overlap loosens that prior.
-        prior = (bounds_n[0], bounds_n[1]) if overlap < 0.5 else (max(bounds_n[0], 0.5 * overlap),
-                                                                   min(bounds_n[1], 2.0 / overlap))
+        # The overlapping regions have normalised diameters between about sqrt(r) and 1 in each
+        # cloud, which bounds the normalised scale (a margin of 1.5 for crops and outliers).
+        prior = (max(bounds_n[0], region / 1.5), min(bounds_n[1], 1.5 / region))
+        if prior[0] >= prior[1]:
+            continue
         cand = _outer_loop(src, tgt, subset(H3_all, keep), overlap, cfg, rng_overlaps[k % 4], prior, timer)
         if cand is None:
             continue
@@ -240,10 +244,16 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     T_n, fit = best.transform, best.fit
     if cfg.refine.enabled:
         t = time.perf_counter()
-        T_r, _ = trimmed_scaled_icp(src.points, tgt.points, T_n, cfg.refine.iterations, cfg.refine.start_ratio,
-                                    cfg.refine.end_ratio, bounds_n, tgt.tree)
+        r = cfg.refine
+        if r.method == "point_to_plane":
+            T_r, _ = scaled_point_to_plane_icp(src.points, tgt.points, tgt.normals, T_n, r.iterations,
+                                               r.start_ratio, r.end_ratio, bounds_n, tgt.tree)
+        else:
+            T_r, _ = trimmed_scaled_icp(src.points, tgt.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
+                                        bounds_n, tgt.tree)
         fit_r = evaluate_fit(src.points, tgt.tree, T_r, cfg.inlier_distance_ratio)
-        if fit_r.fitness > fit.fitness or (fit_r.fitness == fit.fitness and fit_r.rmse < fit.rmse):
+        # Keep the refinement unless it clearly loses robust fitness (a drift, not a polish).
+        if fit_r.fitness >= 0.97 * fit.fitness:
             T_n, fit = T_r, fit_r
         timer.add("refine", t)
 

@@ -53,3 +53,64 @@ def trimmed_scaled_icp(src: np.ndarray, tgt: np.ndarray, T0: np.ndarray, iterati
         if change < 1e-7 and tau <= end * 1.001:
             break
     return T, it
+
+
+def _small_similarity(x: np.ndarray) -> np.ndarray:
+    """4x4 similarity from the linearised update (wx, wy, wz, tx, ty, tz, log-scale)."""
+    w, t, ds = x[:3], x[3:6], x[6]
+    theta = float(np.linalg.norm(w))
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if theta > 1e-12:
+        R = np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+    else:
+        R = np.eye(3) + K
+    return to_matrix(float(np.exp(ds)), R, t)
+
+
+def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T0: np.ndarray,
+                              iterations: int, start: float, end: float, scale_bounds: tuple[float, float],
+                              tgt_tree: cKDTree | None = None) -> tuple[np.ndarray, int]:
+    """Scaled point-to-plane ICP, linearised Gauss-Newton with trimming and Huber weights.
+
+    Minimises ``sum w_i ((s R p_i + t - q_i) . n_i)^2`` over matches closer than a trimming
+    distance that shrinks geometrically from ``start`` to ``end``. Point-to-plane lets the clouds
+    slide along the surface, which avoids the scale and rotation bias that point-to-point matching
+    of differently sampled, noisy surfaces shows.
+    """
+    tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
+    T = T0.copy()
+    taus = np.geomspace(start, end, max(iterations, 1))
+    it = 0
+    for it, tau in enumerate(taus, start=1):
+        p = apply(T, src)
+        d, j = tree.query(p, distance_upper_bound=tau)
+        keep = np.isfinite(d)
+        if keep.sum() < 20:
+            break
+        p, q, n = p[keep], tgt[j[keep]], tgt_normals[j[keep]]
+        centre = p.mean(axis=0)  # linearise about the matched points' centroid (better conditioned)
+        pc = p - centre
+        r = np.einsum("ij,ij->i", p - q, n)
+        # d(residual) / d(w, t, log s): [pc x n, n, pc . n]
+        J = np.hstack([np.cross(pc, n), n, np.einsum("ij,ij->i", pc, n)[:, None]])
+        huber = np.maximum(np.abs(r), 1e-12)
+        w = np.where(huber < tau / 3, 1.0, (tau / 3) / huber)
+        A = J.T @ (J * w[:, None])
+        b = -J.T @ (w * r)
+        try:
+            x = np.linalg.solve(A + 1e-9 * np.eye(7), b)
+        except np.linalg.LinAlgError:
+            break
+        step = _small_similarity(x)
+        C = np.eye(4)
+        C[:3, 3] = centre
+        Ci = np.eye(4)
+        Ci[:3, 3] = -centre
+        T_new = C @ step @ Ci @ T
+        s_new = float(np.linalg.det(T_new[:3, :3]) ** (1 / 3))
+        if not scale_bounds[0] <= s_new <= scale_bounds[1]:
+            break
+        T = T_new
+        if np.linalg.norm(x) < 1e-7 and tau <= end * 1.001:
+            break
+    return T, it
