@@ -55,7 +55,7 @@ class TripletConfig(_Strict):
 class TensorConfig(_Strict):
     """Sparse third-order tensor from k nearest neighbours in descriptor space."""
 
-    knn: int = Field(100, ge=1, le=1000, description="target triangles matched per source triangle")
+    knn: int = Field(50, ge=1, le=1000, description="target triangles matched per source triangle")
     normal_weight: float = Field(1.0, ge=0, description="weight of the vertex-normal terms of the descriptor; 0 = angles only")
     sigma: float = Field(0.0, ge=0, description="descriptor bandwidth; 0 = mean kNN distance")
     first_order_weight: float = Field(1.0, ge=0, description="weight of the point-to-point term")
@@ -63,7 +63,7 @@ class TensorConfig(_Strict):
 
 
 class PowerIterationConfig(_Strict):
-    iterations: int = Field(40, ge=1, le=1000)
+    iterations: int = Field(20, ge=1, le=1000)
     tol: float = Field(1e-6, gt=0)
     normalisation_rounds: int = Field(5, ge=0, le=50, description="row/column L2 normalisations per step")
 
@@ -71,6 +71,8 @@ class PowerIterationConfig(_Strict):
 class RansacConfig(_Strict):
     iterations: int = Field(2000, ge=1, description="hypotheses from the best-supported tensor entries")
     random_samples: int = Field(1000, ge=0, description="extra hypotheses drawn from the soft assignment")
+    verify_top: int = Field(300, ge=1, description="best hypotheses re-ranked by dense symmetric fitness")
+    refine_fraction: float = Field(0.25, gt=0, le=1, description="share of hypotheses once a transform exists")
     candidates: int = Field(3, ge=1, le=10, description="correspondences kept per source point")
     inlier_ratio: float = Field(0.05, gt=0, lt=1, description="inlier threshold / target diameter")
     min_inliers: int = Field(6, ge=3, description="fewer inliers = too weak evidence: failed status")

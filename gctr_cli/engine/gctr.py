@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -31,7 +31,7 @@ from gctr_cli.engine.preprocess import (
     normalise,
     validate_cloud,
 )
-from gctr_cli.engine.ransac import ransac_similarity, sample_from_assignment
+from gctr_cli.engine.ransac import Hypotheses, OccupancyGrid, ransac_hypotheses, refit, sample_from_assignment
 from gctr_cli.engine.refine import Fit, evaluate_fit, scaled_point_to_plane_icp, trimmed_scaled_icp
 from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.similarity import apply, best_similarity, to_matrix
@@ -63,6 +63,13 @@ class _Prepared:
     salient_normals: np.ndarray
     salient_tree: cKDTree
     diameter: float  # diameter of the salient set
+    grids: dict = field(default_factory=dict, compare=False)
+
+    def grid(self, radius: float) -> OccupancyGrid:
+        """Occupancy grid of the working cloud at ``radius`` (built once, then cached)."""
+        if radius not in self.grids:
+            self.grids[radius] = OccupancyGrid(self.points, radius)
+        return self.grids[radius]
 
 
 @dataclass(frozen=True)
@@ -109,6 +116,31 @@ def _coverage(src: _Prepared, tgt: _Prepared, T: np.ndarray, distance: float) ->
     return float(np.isfinite(d).mean())
 
 
+def _dense_scores(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, distance: float,
+                  n_points: int = 800) -> np.ndarray:
+    """sqrt(fitness * coverage) of each hypothesis on ~``n_points`` of each working cloud.
+
+    fitness: share of source points landing near the target; coverage: share of target points
+    whose inverse image lands near the source. Both are occupancy-grid lookups.
+    """
+    ps = src.points[:: max(1, len(src.points) // n_points)]
+    pt = tgt.points[:: max(1, len(tgt.points) // n_points)]
+    fwd = np.matmul(hyp.scale[:, None, None] * hyp.rotation, ps.T).transpose(0, 2, 1) + hyp.translation[:, None]
+    fitness = tgt.grid(distance).contains(fwd).mean(axis=1)
+    back = np.matmul(hyp.rotation.transpose(0, 2, 1), (pt[None] - hyp.translation[:, None]).transpose(0, 2, 1))
+    back = back.transpose(0, 2, 1) / hyp.scale[:, None, None]
+    coverage = src.grid(distance).contains(back).mean(axis=1)
+    return np.sqrt(fitness * coverage)
+
+
+def _select_dense(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, distance: float, finalists: int = 10) -> int:
+    """Index of the best hypothesis: a coarse dense score for all, a finer one for the finalists."""
+    coarse = _dense_scores(src, tgt, hyp, distance, n_points=150)
+    top = np.argsort(-coarse, kind="stable")[:finalists]
+    sub = Hypotheses(hyp.scale[top], hyp.rotation[top], hyp.translation[top], hyp.score[top])
+    return int(top[int(np.argmax(_dense_scores(src, tgt, sub, distance)))])
+
+
 def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: float, cfg: EngineConfig,
                 rng: np.random.Generator, bounds_n: tuple[float, float], timer: _Timer) -> _Candidate | None:
     """Algorithm 1's outer loop for one overlap ratio (normalised coordinates): power iteration with
@@ -117,25 +149,37 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
     n2 = len(Q)
     threshold = cfg.ransac.inlier_ratio
     T: np.ndarray | None = None
+    X: np.ndarray | None = None
     n_inliers, it = 0, 0
     for it in range(1, cfg.outer.max_iterations + 1):
         t = time.perf_counter()
         H1 = build_first_order(apply(T, S), Q, cfg.tensor.first_order_sigma) if T is not None else None
         t = timer.add("tensor", t)
         X, _ = power_iteration(H3, H1, cfg.tensor.first_order_weight, cfg.power_iteration.iterations,
-                               cfg.power_iteration.tol, cfg.power_iteration.normalisation_rounds)
+                               cfg.power_iteration.tol, cfg.power_iteration.normalisation_rounds, start=X)
         t = timer.add("power_iteration", t)
         scores = entry_scores(H3, X.ravel())
-        n_guided = min(cfg.ransac.iterations, len(scores))
+        # Later rounds start from a transform and a sharper assignment: fewer hypotheses suffice.
+        budget = cfg.ransac.iterations if T is None else max(1, int(cfg.ransac.iterations * cfg.ransac.refine_fraction))
+        n_guided = min(budget, len(scores))
         top = np.argpartition(-scores, n_guided - 1)[:n_guided] if n_guided < len(scores) else np.arange(len(scores))
         top = top[np.argsort(-scores[top], kind="stable")]
         guided_src = np.stack([H3.a[top] // n2, H3.b[top] // n2, H3.c[top] // n2], axis=1)
         guided_tgt = np.stack([H3.a[top] % n2, H3.b[top] % n2, H3.c[top] % n2], axis=1)
-        rand_src, rand_tgt = sample_from_assignment(X, cfg.ransac.random_samples, cfg.ransac.candidates, rng)
-        rr = ransac_similarity(S, Q, tgt.salient_tree, np.vstack([guided_src, rand_src]),
-                               np.vstack([guided_tgt, rand_tgt]), threshold, bounds_n, min_spread=0.05)
+        n_random = cfg.ransac.random_samples if T is None else int(cfg.ransac.random_samples * cfg.ransac.refine_fraction)
+        rand_src, rand_tgt = sample_from_assignment(X, n_random, cfg.ransac.candidates, rng)
+        hyp = ransac_hypotheses(S, Q, np.vstack([guided_src, rand_src]), np.vstack([guided_tgt, rand_tgt]),
+                                threshold, bounds_n, min_spread=0.05, keep=cfg.ransac.verify_top)
         t = timer.add("ransac", t)
-        if rr is None or rr.n_inliers < 3:
+        if len(hyp) == 0:
+            break
+        # Dense verification: the salient-inlier count is a coarse vote; re-rank the best
+        # hypotheses by the symmetric fitness on the working clouds.
+        j = _select_dense(src, tgt, hyp, cfg.inlier_distance_ratio)
+        rr = refit(float(hyp.scale[j]), hyp.rotation[j], hyp.translation[j], S, Q, tgt.salient_tree, threshold,
+                   bounds_n)
+        t = timer.add("verify", t)
+        if rr.n_inliers < 3:
             break
         s, R, tr, _ = best_similarity(S[rr.inliers_src], Q[rr.inliers_tgt], cfg.scale_method, rng)
         if not bounds_n[0] <= s <= bounds_n[1]:

@@ -34,11 +34,15 @@ def tensor_product(tensor: SparseTensor3, x: np.ndarray) -> np.ndarray:
 
 def power_iteration(tensor: SparseTensor3, first_order: SparseVector | None = None,
                     first_order_weight: float = 1.0, iterations: int = 40, tol: float = 1e-6,
-                    normalisation_rounds: int = 5) -> tuple[np.ndarray, int]:
-    """Return the soft assignment matrix X (n1, n2) and the number of iterations run."""
+                    normalisation_rounds: int = 5, start: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Return the soft assignment matrix X (n1, n2) and the number of iterations run.
+
+    ``start`` warm-starts from a previous assignment (the outer loop passes its last X); the
+    default is the uniform assignment ``1 / n2``.
+    """
     n1, n2 = tensor.n1, tensor.n2
     n = n1 * n2
-    x = np.full(n, 1.0 / n2)
+    x = np.full(n, 1.0 / n2) if start is None else np.asarray(start, dtype=float).ravel().copy()
     h1 = np.zeros(n)
     if first_order is not None and len(first_order.index) and first_order_weight > 0:
         np.add.at(h1, first_order.index, first_order.values)

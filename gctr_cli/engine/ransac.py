@@ -44,23 +44,63 @@ def sample_from_assignment(X: np.ndarray, n: int, k: int, rng: np.random.Generat
     return src[pick], tgt[pick]
 
 
-def count_inliers(s: np.ndarray, R: np.ndarray, t: np.ndarray, S: np.ndarray, tgt_tree: cKDTree,
-                  threshold: float) -> np.ndarray:
-    """For each hypothesis, how many of the points ``S`` land within ``threshold`` of the target."""
-    moved = s[:, None, None] * np.einsum("hij,kj->hki", R, S) + t[:, None, :]
-    d, _ = tgt_tree.query(moved.reshape(-1, 3), distance_upper_bound=threshold)
-    return np.isfinite(d).reshape(len(s), len(S)).sum(axis=1)
+class OccupancyGrid:
+    """Boolean voxel grid marking space within ``radius`` of a point set (cells of radius / 3).
 
-
-def ransac_similarity(S: np.ndarray, Q: np.ndarray, tgt_tree: cKDTree, samples_src: np.ndarray,
-                      samples_tgt: np.ndarray, threshold: float,
-                      scale_bounds: tuple[float, float] = (0.0, np.inf), min_spread: float = 0.0,
-                      chunk: int = 1024) -> RansacResult | None:
-    """Best similarity ``Q ~ s R S + t`` among the minimal samples (index triples into S and Q).
-
-    Returns None when no sample passes the checks (degenerate, or scale out of bounds).
+    Scoring thousands of hypotheses becomes an index lookup per moved point instead of a k-d tree
+    query; the answer is exact up to the cell size. Final inliers are re-collected exactly.
     """
-    best_score, best = -1, None
+
+    def __init__(self, points: np.ndarray, radius: float):
+        self.cell = radius / 3.0
+        self.origin = points.min(axis=0) - radius - 2 * self.cell
+        self.dims = np.ceil((points.max(axis=0) + radius + 2 * self.cell - self.origin) / self.cell).astype(np.int64) + 1
+        r = 3
+        off = np.stack(np.meshgrid(*[np.arange(-r, r + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        off = off[np.linalg.norm(off, axis=1) * self.cell <= radius]
+        base = np.floor((points - self.origin) / self.cell).astype(np.int64)
+        cells = (base[:, None, :] + off[None]).reshape(-1, 3)
+        self.occupied = np.zeros(int(np.prod(self.dims)), dtype=bool)
+        self.occupied[np.ravel_multi_index(cells.T, self.dims)] = True
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask (any leading shape) of points inside the marked region."""
+        idx = np.floor((points - self.origin) / self.cell).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < self.dims), axis=-1)
+        flat = np.zeros(inside.shape, dtype=np.int64)
+        flat[inside] = np.ravel_multi_index(idx[inside].T, self.dims)
+        return inside & self.occupied[flat]
+
+
+def count_inliers(s: np.ndarray, R: np.ndarray, t: np.ndarray, S: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
+    """For each hypothesis, how many of the points ``S`` land within the grid's radius of the target."""
+    moved = np.matmul(s[:, None, None] * R, S.T).transpose(0, 2, 1) + t[:, None, :]
+    return grid.contains(moved).sum(axis=1)
+
+
+@dataclass(frozen=True)
+class Hypotheses:
+    """Similarity hypotheses sorted by decreasing salient-inlier count."""
+
+    scale: np.ndarray  # (H,)
+    rotation: np.ndarray  # (H, 3, 3)
+    translation: np.ndarray  # (H, 3)
+    score: np.ndarray  # (H,) inlier counts
+
+    def __len__(self) -> int:
+        return len(self.scale)
+
+
+def ransac_hypotheses(S: np.ndarray, Q: np.ndarray, samples_src: np.ndarray, samples_tgt: np.ndarray,
+                      threshold: float, scale_bounds: tuple[float, float] = (0.0, np.inf),
+                      min_spread: float = 0.0, keep: int = 1, chunk: int = 1024) -> Hypotheses:
+    """Solve every minimal sample (index triples into S and Q) and keep the ``keep`` best by the
+    number of source salient points landing within ``threshold`` of a target salient point.
+
+    Degenerate samples (repeated points, tiny area) and scales outside the bounds are skipped.
+    """
+    grid = OccupancyGrid(Q, threshold)
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     for start in range(0, len(samples_src), chunk):
         si = samples_src[start:start + chunk]
         ti = samples_tgt[start:start + chunk]
@@ -76,14 +116,20 @@ def ransac_similarity(S: np.ndarray, Q: np.ndarray, tgt_tree: cKDTree, samples_s
         if not good.any():
             continue
         s, R, t = s[good], R[good], t[good]
-        score = count_inliers(s, R, t, S, tgt_tree, threshold)
-        j = int(np.argmax(score))
-        if score[j] > best_score:
-            best_score, best = int(score[j]), (float(s[j]), R[j], t[j])
-    if best is None:
-        return None
-    s, R, t = best
-    for _ in range(3):
+        score = count_inliers(s, R, t, S, grid)
+        top = np.argsort(-score, kind="stable")[:keep]
+        parts.append((s[top], R[top], t[top], score[top]))
+    if not parts:
+        return Hypotheses(np.empty(0), np.empty((0, 3, 3)), np.empty((0, 3)), np.empty(0, dtype=np.int64))
+    s, R, t, score = (np.concatenate(x) for x in zip(*parts))
+    top = np.argsort(-score, kind="stable")[:keep]
+    return Hypotheses(s[top], R[top], t[top], score[top])
+
+
+def refit(s: float, R: np.ndarray, t: np.ndarray, S: np.ndarray, Q: np.ndarray, tgt_tree: cKDTree,
+          threshold: float, scale_bounds: tuple[float, float] = (0.0, np.inf), rounds: int = 3) -> RansacResult:
+    """Re-estimate a hypothesis on its salient inliers (nearest target within ``threshold``)."""
+    for _ in range(rounds):
         src_in, tgt_in = inlier_matches(s, R, t, S, tgt_tree, threshold)
         if len(src_in) < 3:
             break
@@ -92,7 +138,7 @@ def ransac_similarity(S: np.ndarray, Q: np.ndarray, tgt_tree: cKDTree, samples_s
             break
         s, R, t = s2, R2, t2
     src_in, tgt_in = inlier_matches(s, R, t, S, tgt_tree, threshold)
-    return RansacResult(scale=s, rotation=R, translation=t, inliers_src=src_in, inliers_tgt=tgt_in,
+    return RansacResult(scale=float(s), rotation=R, translation=t, inliers_src=src_in, inliers_tgt=tgt_in,
                         n_inliers=len(src_in))
 
 

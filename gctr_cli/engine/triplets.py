@@ -40,8 +40,9 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
     if len(tri) == 0:
         return tri
     # Deduplicate on the unordered vertex set, keep the first draw (seeded, deterministic).
-    key = np.sort(tri, axis=1)
-    _, first = np.unique(key, axis=0, return_index=True)
+    srt = np.sort(tri, axis=1).astype(np.int64)
+    key = (srt[:, 0] * m + srt[:, 1]) * m + srt[:, 2]
+    _, first = np.unique(key, return_index=True)
     tri = tri[np.sort(first)][:n]
     return canonical_order(points, tri)
 
