@@ -65,7 +65,7 @@ class TensorConfig(_Strict):
 class PowerIterationConfig(_Strict):
     iterations: int = Field(20, ge=1, le=1000)
     tol: float = Field(1e-6, gt=0)
-    normalisation_rounds: int = Field(5, ge=0, le=50, description="row/column L2 normalisations per step")
+    normalisation_rounds: int = Field(3, ge=0, le=50, description="row/column L2 normalisations per step")
 
 
 class RansacConfig(_Strict):

@@ -55,20 +55,19 @@ class OccupancyGrid:
         self.cell = radius / 3.0
         self.origin = points.min(axis=0) - radius - 2 * self.cell
         self.dims = np.ceil((points.max(axis=0) + radius + 2 * self.cell - self.origin) / self.cell).astype(np.int64) + 1
+        self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
         r = 3
         off = np.stack(np.meshgrid(*[np.arange(-r, r + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
         off = off[np.linalg.norm(off, axis=1) * self.cell <= radius]
-        base = np.floor((points - self.origin) / self.cell).astype(np.int64)
-        cells = (base[:, None, :] + off[None]).reshape(-1, 3)
+        base = np.unique(np.floor((points - self.origin) / self.cell).astype(np.int64) @ self.strides)
         self.occupied = np.zeros(int(np.prod(self.dims)), dtype=bool)
-        self.occupied[np.ravel_multi_index(cells.T, self.dims)] = True
+        self.occupied[(base[:, None] + (off @ self.strides)[None]).ravel()] = True
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Boolean mask (any leading shape) of points inside the marked region."""
-        idx = np.floor((points - self.origin) / self.cell).astype(np.int64)
+        idx = ((points - self.origin) * (1.0 / self.cell)).astype(np.int64)  # >= 0 inside the box
         inside = np.all((idx >= 0) & (idx < self.dims), axis=-1)
-        flat = np.zeros(inside.shape, dtype=np.int64)
-        flat[inside] = np.ravel_multi_index(idx[inside].T, self.dims)
+        flat = np.where(inside, idx @ self.strides, 0)
         return inside & self.occupied[flat]
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gctr_cli.engine.descriptor import canonical_order, inner_angle_cosines
+from gctr_cli.engine.descriptor import canonical_order
 
 
 def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random.Generator,
@@ -20,18 +20,23 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
     if m < 3 or n <= 0:
         return np.empty((0, 3), dtype=np.int64)
     max_cos = np.cos(np.radians(min_angle_deg))
+    # Squared pairwise distances of the (few hundred) salient points: edge tests and the law of
+    # cosines become table lookups.
+    sq = np.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=-1)
+    min_sq = min_edge * min_edge
     found: list[np.ndarray] = []
     have = 0
     batch = max(4 * n, 1000)
     for _ in range(max_rounds):
-        tri = rng.integers(0, m, size=(batch, 3))
-        tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
-        p = points[tri]
-        edges = np.linalg.norm(p[:, [1, 2, 0]] - p, axis=2)
-        ok = np.all(edges >= min_edge, axis=1)
-        tri = tri[ok]
-        cos = inner_angle_cosines(points, tri)
-        tri = tri[np.all(cos <= max_cos, axis=1)]
+        i, j, k = rng.integers(0, m, size=(3, batch))
+        a2, b2, c2 = sq[j, k], sq[k, i], sq[i, j]  # squared edges opposite vertices i, j, k
+        ok = (a2 >= min_sq) & (b2 >= min_sq) & (c2 >= min_sq) & (a2 > 0) & (b2 > 0) & (c2 > 0)
+        i, j, k, a2, b2, c2 = i[ok], j[ok], k[ok], a2[ok], b2[ok], c2[ok]
+        cos_i = (b2 + c2 - a2) / (2 * np.sqrt(b2 * c2))
+        cos_j = (a2 + c2 - b2) / (2 * np.sqrt(a2 * c2))
+        cos_k = (a2 + b2 - c2) / (2 * np.sqrt(a2 * b2))
+        ok = (cos_i <= max_cos) & (cos_j <= max_cos) & (cos_k <= max_cos)
+        tri = np.stack([i[ok], j[ok], k[ok]], axis=1)
         found.append(tri)
         have += len(tri)
         if have >= 2 * n:
