@@ -1,0 +1,452 @@
+"""The ``gctr`` command line: register one pair, run a batch, build a manifest, show/check configs.
+
+Heavy modules (numpy, Open3D, the engine, pydantic) are imported inside the commands, so
+``gctr --help`` is instant and never loads Open3D.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
+from typing import Any, Iterator, NoReturn
+
+import click
+
+from gctr_cli import __version__
+
+logger = logging.getLogger("gctr_cli")
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_BELOW_MIN_SUCCESS = 3
+
+#: native thread pools capped to one thread (same list as ``gctr_cli.batch.THREAD_ENV_VARS``, repeated
+#: here so that setting them does not import numpy first)
+THREAD_ENV_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "BLIS_NUM_THREADS",
+)
+
+EXIT_CODES_HELP = """\b
+Exit codes:
+  0  every pair registered (status ok)
+  1  at least one pair failed (see the message column of transforms.csv)
+  2  usage, manifest, config or output-folder error: nothing was run
+  3  --min-success given and the success rate over pairs with ground
+     truth is below it (takes precedence over 1)"""
+
+
+# ----------------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------------
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at emit time (works under click's test runner too)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property  # type: ignore[override]
+    def stream(self):  # noqa: D401
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("gctr: %(levelname)s: %(message)s"))
+        logger.addHandler(handler)
+        logger.propagate = False
+    logger.setLevel(level)
+
+
+def _die(message: str, code: int = EXIT_USAGE) -> NoReturn:
+    click.echo(f"gctr: error: {message}", err=True)
+    sys.exit(code)
+
+
+def _load_config(path: str | None):
+    from gctr_cli.config import ConfigError, load_config
+
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        _die(str(exc))
+
+
+def _single_threaded_native_libs() -> None:
+    """Run the engine like a batch worker does: one BLAS/OpenMP thread (unless the user set them).
+
+    Must run before numpy is imported. Same numerics as a batch row (``--seed`` reproduces it) and,
+    on small matrices, much faster than oversubscribed BLAS threads.
+    """
+    for var in THREAD_ENV_VARS:
+        os.environ.setdefault(var, "1")
+
+
+def _fmt_num(x: float | None, spec: str = ".6g") -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C."""
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (e.g. from a job scheduler) stops the batch like Ctrl-C: workers killed, lock released."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):  # noqa: ARG001
+        raise _Terminated
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+# ----------------------------------------------------------------------------------------------------
+# the group
+# ----------------------------------------------------------------------------------------------------
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="gctr")
+@click.option("-v", "--verbose", count=True, help="More log output on stderr (-v info, -vv debug).")
+def main(verbose: int) -> None:
+    """gctr: register pairs of 3D point clouds from different sensors with a similarity transform
+    (rotation, translation and scale), using GCTR (geometric constraint tensor-based registration).
+
+    \b
+    Examples:
+      gctr register scan_a.ply scan_b.pcd -o a_to_b.txt
+      gctr manifest lidar/ photogrammetry/ --gt-dir gt/ -o pairs.csv
+      gctr batch pairs.csv -c configs/default.yaml -o results/
+      gctr config show > my.yaml && gctr config check my.yaml
+
+    Every matrix is a 4x4 [[s*R, t], [0 0 0 1]] mapping the SOURCE cloud onto the TARGET.
+
+    \b
+    Exit codes:
+      0  success
+      1  registration failed (register) / at least one pair failed (batch)
+      2  usage, file, manifest or config error: nothing was run
+      3  batch --min-success: success rate below the threshold
+    """
+    _setup_logging(verbose)
+
+
+# ----------------------------------------------------------------------------------------------------
+# register
+# ----------------------------------------------------------------------------------------------------
+
+
+@main.command()
+@click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: built-in defaults).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Write the 4x4 matrix to this file.")
+@click.option("--gt", type=click.Path(dir_okay=False, path_type=Path), help="Ground-truth matrix: also print the errors.")
+@click.option("--seed", type=click.IntRange(min=0), help="Engine seed (default: the config seed). To reproduce a "
+              "batch row, pass its seed column.")
+def register(source: Path, target: Path, config_path: str | None, output: Path | None, gt: Path | None,
+             seed: int | None) -> None:
+    """Register SOURCE onto TARGET and print the similarity transform.
+
+    Prints the 4x4 matrix (full precision, same format as the matrix files), the scale, fitness
+    (fraction of source points with a target point within the inlier distance), inlier RMSE, status
+    and runtime; with --gt also the rotation/translation/scale/TM errors and success. BLAS/OpenMP
+    run single-threaded as in batch workers (set OMP_NUM_THREADS etc. to override).
+
+    \b
+    Exit codes:
+      0  registered (status ok)
+      1  registration failed (the message says why)
+      2  usage, config or file error (unreadable cloud, bad ground truth)
+    """
+    _single_threaded_native_libs()
+    config = _load_config(config_path)
+    from gctr_cli import batch
+    from gctr_cli.io import MatrixError, format_matrix, write_matrix
+    from gctr_cli.manifest import PairSpec
+
+    spec = PairSpec(pair_id=source.stem, source=source, target=target, gt=gt)
+    outcome = batch.run_pair(spec, config, seed=config.seed if seed is None else seed)
+    if outcome.failure in ("input", "ground_truth"):
+        _die(outcome.message)
+
+    echo = click.echo
+    echo(f"status: {outcome.status}")
+    if outcome.message:
+        echo(f"message: {outcome.message}")
+    if outcome.transform is not None:
+        echo("matrix (source -> target):")
+        echo(format_matrix(outcome.transform), nl=False)
+        echo(f"scale: {outcome.scale!r}")
+    echo(f"fitness: {_fmt_num(outcome.fitness)}")
+    echo(f"inlier_rmse: {_fmt_num(outcome.inlier_rmse)}")
+    echo(f"runtime_s: {outcome.runtime_s:.3f}")
+    echo(f"seed: {outcome.seed}")
+    if outcome.errors is not None:
+        e = outcome.errors
+        echo(f"rot_err_deg: {e.rot_err_deg:.6g}")
+        echo(f"trans_err: {e.trans_err:.6g}")
+        echo(f"trans_err_rel: {e.trans_err_rel:.6g}")
+        echo(f"scale_err: {e.scale_err:.6g}")
+        echo(f"tm_err: {e.tm_err:.6g}")
+        echo(f"success: {'true' if outcome.success else 'false'}")
+
+    if not outcome.ok:
+        if output is not None:
+            click.echo(f"gctr: no matrix written to {output} (registration failed)", err=True)
+        sys.exit(EXIT_FAILED)
+    if output is not None:
+        try:
+            write_matrix(output, outcome.transform)
+        except MatrixError as exc:
+            _die(str(exc))
+        logger.info("wrote %s", output)
+
+
+# ----------------------------------------------------------------------------------------------------
+# batch
+# ----------------------------------------------------------------------------------------------------
+
+
+def _print_summary(summary: Any, config: Any) -> None:
+    s = summary
+    echo = click.echo
+    resumed = f" ({s.n_resumed} done by an earlier run)" if s.n_resumed else ""
+    echo(f"pairs: {s.n_pairs} ({s.n_ok} ok, {s.n_failed} failed){resumed}")
+    if s.success_rate is not None:
+        th = config.success
+        echo(
+            f"success: {s.n_success}/{s.n_gt} pairs with ground truth ({100 * s.success_rate:.1f}%)"
+            f"  [rotation < {th.rotation_deg:g} deg, translation < {th.translation_rel:g} x target diagonal,"
+            f" scale error < {th.scale:g}]"
+        )
+    else:
+        echo("success: n/a (no pair has ground truth)")
+    if s.median_rot_err_deg is not None:
+        echo(
+            f"median errors: rotation {s.median_rot_err_deg:.4g} deg, translation {s.median_trans_err:.4g}"
+            f" ({s.median_trans_err_rel:.4g} x target diagonal), scale {s.median_scale_err:.4g},"
+            f" TM {s.median_tm_err:.4g}"
+        )
+    echo(f"wall time: {s.wall_time_s:.1f} s ({s.n_run} pairs run)")
+    if s.failures:
+        echo("failed pairs:")
+        for pid, msg in s.failures[:50]:
+            echo(f"  {pid}: {msg}")
+        if len(s.failures) > 50:
+            echo(f"  ... and {len(s.failures) - 50} more (see transforms.csv)")
+    echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml")
+
+
+@main.command(epilog=EXIT_CODES_HELP)
+@click.argument("manifest", type=click.Path(path_type=Path))
+@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: built-in defaults).")
+@click.option("-o", "--outdir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder (created if needed).")
+@click.option("-j", "--workers", type=click.IntRange(min=0), help="Worker processes (default: config batch.workers; 0 = one per core).")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run: skip pairs already in OUTDIR/transforms.csv.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("--min-success", type=click.FloatRange(0.0, 1.0), metavar="RATE",
+              help="Exit 3 if the success rate over pairs with ground truth is below RATE (0..1).")
+def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | None, resume: bool, quiet: bool,
+          min_success: float | None) -> None:
+    """Register every pair of MANIFEST in a pool of worker processes.
+
+    MANIFEST is a CSV with header pair_id,source,target[,gt] (relative paths are relative to the
+    manifest's folder). Results are written to OUTDIR as pairs finish: transforms.csv (one row per
+    pair, ok or failed with a message), tm_errors.csv (pairs with ground truth), matrices/<pair_id>.txt
+    and config.yaml (the resolved config). A crashed or timed-out pair gets a failed row and the
+    batch goes on. An interrupted run keeps every finished pair: rerun with --resume to finish it.
+    Results do not depend on -j.
+    """
+    config = _load_config(config_path)
+    from gctr_cli import batch as batch_mod
+    from gctr_cli.manifest import ManifestError, read_manifest
+
+    try:
+        pairs = read_manifest(manifest)
+    except ManifestError as exc:
+        _die(str(exc))
+    if min_success is not None and not any(p.gt is not None for p in pairs):
+        _die(f"--min-success needs pairs with ground truth, but no pair of {manifest} has a gt file")
+
+    from tqdm import tqdm
+
+    show_bar = not quiet and sys.stderr.isatty()
+    bar: Any = None
+    n_failed = 0
+
+    def on_start(n_todo: int, n_done: int) -> None:
+        nonlocal bar
+        bar = tqdm(total=n_todo + n_done, initial=n_done, unit="pair", file=sys.stderr, disable=not show_bar,
+                   dynamic_ncols=True, desc="gctr")
+
+    def on_outcome(outcome: Any) -> None:
+        nonlocal n_failed
+        if not outcome.ok:
+            n_failed += 1
+        if bar is not None:
+            bar.update(1)
+            if n_failed:
+                bar.set_postfix(failed=n_failed)
+
+    if show_bar:
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        redirect: Any = logging_redirect_tqdm(loggers=[logger])
+    else:
+        redirect = nullcontext()
+    try:
+        with _sigterm_as_interrupt(), redirect:
+            summary = batch_mod.run_batch(
+                pairs, config, outdir, workers=workers, resume=resume, on_start=on_start, on_outcome=on_outcome
+            )
+    except batch_mod.BatchError as exc:
+        _die(str(exc))
+    except KeyboardInterrupt as exc:
+        if bar is not None:
+            bar.close()
+        click.echo(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish", err=True)
+        sys.exit(128 + (signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT))
+    finally:
+        if bar is not None:
+            bar.close()
+
+    _print_summary(summary, config)
+    if min_success is not None and summary.success_rate is not None and summary.success_rate < min_success:
+        click.echo(
+            f"gctr: success rate {100 * summary.success_rate:.1f}% is below --min-success "
+            f"{100 * min_success:.1f}%", err=True,
+        )
+        sys.exit(EXIT_BELOW_MIN_SUCCESS)
+    sys.exit(EXIT_OK if summary.all_ok else EXIT_FAILED)
+
+
+# ----------------------------------------------------------------------------------------------------
+# manifest
+# ----------------------------------------------------------------------------------------------------
+
+
+@main.command()
+@click.argument("source_dir", type=click.Path(path_type=Path))
+@click.argument("target_dir", type=click.Path(path_type=Path))
+@click.option("--gt-dir", type=click.Path(path_type=Path), help="Folder of ground-truth matrices named <stem>.txt.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Manifest CSV to write.")
+def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Path) -> None:
+    """Build a pair manifest by matching file stems of SOURCE_DIR and TARGET_DIR.
+
+    a.ply in SOURCE_DIR pairs with a.pcd in TARGET_DIR (pair_id "a"); with --gt-dir, GT_DIR/a.txt is
+    its ground truth. Stems found on one side only are reported as warnings. Exit 2 on error.
+    """
+    from gctr_cli.manifest import ManifestError, build_manifest, write_manifest
+
+    try:
+        pairs = build_manifest(source_dir, target_dir, gt_dir)
+        write_manifest(output, pairs)
+    except ManifestError as exc:
+        _die(str(exc))
+    n_gt = sum(p.gt is not None for p in pairs)
+    click.echo(f"wrote {len(pairs)} pairs ({n_gt} with ground truth) to {output}")
+
+
+# ----------------------------------------------------------------------------------------------------
+# config
+# ----------------------------------------------------------------------------------------------------
+
+
+def commented_yaml(config: Any) -> str:
+    """YAML of a config with each section's docstring and each key's description as comments."""
+    import typing
+
+    import yaml
+    from pydantic import BaseModel
+
+    def scalar(value: Any) -> str:
+        text = yaml.safe_dump(value, default_flow_style=True, width=10_000).strip()
+        if text.endswith("\n..."):
+            text = text[: -len("\n...")]
+        return text.strip()
+
+    lines = [
+        "# gctr configuration. Every key is optional; missing keys take the defaults shown here.",
+        "# Lengths in the engine section are relative to each cloud's own size (the scale between the",
+        "# two clouds is unknown until the end). Validate a file with: gctr config check FILE",
+    ]
+
+    def emit(model: BaseModel, indent: int) -> None:
+        dumped = model.model_dump(mode="json")
+        pad = " " * indent
+        for name, info in type(model).model_fields.items():
+            value = getattr(model, name)
+            if isinstance(value, BaseModel):
+                doc = (type(value).__doc__ or "").strip()
+                if doc:
+                    for line in doc.split("\n\n")[0].splitlines():
+                        lines.append(f"{pad}# {line.strip()}")
+                lines.append(f"{pad}{name}:")
+                emit(value, indent + 2)
+                continue
+            comment = info.description or ""
+            args = typing.get_args(info.annotation)
+            choices = [a for arg in ((info.annotation,) + args) if typing.get_origin(arg) is typing.Literal
+                       for a in typing.get_args(arg)]
+            if choices and len(choices) > 1:
+                comment = (comment + "; " if comment else "") + "one of: " + ", ".join(map(str, choices))
+            text = f"{pad}{name}: {scalar(dumped[name])}"
+            lines.append(f"{text}  # {comment}" if comment else text)
+
+    emit(config, 0)
+    return "\n".join(lines) + "\n"
+
+
+@main.group("config")
+def config_group() -> None:
+    """Show the default configuration or validate a config file."""
+
+
+@config_group.command("show")
+@click.argument("file", required=False, type=click.Path(dir_okay=False))
+def config_show(file: str | None) -> None:
+    """Print the default config (or FILE resolved with defaults) as commented YAML.
+
+    Save it, edit what you need, and pass it with -c.
+    """
+    config = _load_config(file)
+    click.echo(commented_yaml(config), nl=False)
+
+
+@config_group.command("check")
+@click.argument("file", type=click.Path(dir_okay=False))
+def config_check(file: str) -> None:
+    """Validate FILE: exit 0 and print "ok", or exit 2 naming each bad key and the expected type."""
+    _load_config(file)
+    click.echo(f"ok: {file}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

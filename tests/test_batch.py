@@ -1,0 +1,498 @@
+"""Batch runner: outputs, per-pair failures, worker death, timeouts, kill + resume, reproducibility, lock.
+
+These tests use the deterministic fake engine of ``fake_engine.py`` (exact Umeyama on index
+correspondences), so they check the batch machinery, not the algorithm; they run in seconds.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fake_engine
+from conftest import PYTHON, read_csv, row_matrix, write_cloud
+from gctr_cli import batch
+from gctr_cli.batch import (
+    ERRORS_COLUMNS,
+    LOCK_NAME,
+    TRANSFORMS_COLUMNS,
+    BatchError,
+    LockError,
+    derive_seed,
+    run_batch,
+    run_pair,
+)
+from gctr_cli.config import config_from_dict, load_config
+from gctr_cli.io import load_point_cloud, read_matrix
+from gctr_cli.metrics import transform_errors
+
+
+def run(ds, config, outdir, **kw):
+    kw.setdefault("workers", 2)
+    kw.setdefault("register_fn", fake_engine.register)
+    return run_batch(ds.specs(), config, outdir, **kw)
+
+
+def by_id(rows):
+    return {r["pair_id"]: r for r in rows}
+
+
+def stable(row):
+    """A transforms.csv row without the wall-clock column."""
+    return {k: v for k, v in row.items() if k != "runtime_s"}
+
+
+# ----------------------------------------------------------------------------------------------------
+# seeds and run_pair
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_derive_seed_is_stable_and_depends_on_seed_and_pair():
+    assert derive_seed(0, "pair_001") == 1953939761  # pinned: must never change between versions
+    assert derive_seed(7, "pair_001") == 1222557268
+    assert derive_seed(0, "pair_002") == 330443978
+    seeds = {derive_seed(3, f"p{i}") for i in range(1000)}
+    assert len(seeds) == 1000
+    assert all(0 <= s < 2**31 for s in seeds)
+
+
+def test_run_pair_in_process_recovers_gt(four_pairs, fast_config):
+    specs = {s.pair_id: s for s in four_pairs.specs()}
+    out = run_pair(specs["pcd_xyz"], fast_config, fake_engine.register)
+    assert out.ok and out.failure == "" and out.message == ""
+    assert out.seed == derive_seed(7, "pcd_xyz")
+    T_gt = four_pairs.gt["pcd_xyz"]
+    target = load_point_cloud(specs["pcd_xyz"].target)
+    diag = float(np.linalg.norm(target.max(0) - target.min(0)))
+    # the fake adds a seeded offset of at most 1e-7 * diagonal per axis
+    assert np.abs(out.transform[:3, 3] - T_gt[:3, 3]).max() <= 1.01e-7 * diag
+    np.testing.assert_allclose(out.transform[:3, :3], T_gt[:3, :3], atol=1e-12)
+    assert out.scale == pytest.approx(np.cbrt(np.linalg.det(T_gt[:3, :3])), rel=1e-12)
+    assert out.errors.rot_err_deg < 1e-5 and out.errors.scale_err < 1e-12
+    assert out.errors.trans_err_rel == pytest.approx(out.errors.trans_err / diag)
+    assert out.success is True
+    assert len(out.transforms_row) == len(TRANSFORMS_COLUMNS)
+    assert out.errors_row[0] == "pcd_xyz" and out.errors_row[-1] == "true"
+    # an explicit seed overrides the derived one (gctr register --seed)
+    assert run_pair(specs["pcd_xyz"], fast_config, fake_engine.register, seed=5).seed == 5
+
+
+@pytest.mark.parametrize(
+    "gt_text, expected",
+    [
+        (None, "file does not exist"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "expected 4 rows of 4 numbers, found 3"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 2\n", "last row must be '0 0 0 1'"),
+        ("1 0.5 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "not a similarity transform"),
+        ("-1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "reflection or singular"),
+        ("1 0 0 x\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "non-numeric value"),
+    ],
+)
+def test_run_pair_bad_ground_truth(dataset, fast_config, gt_text, expected):
+    row = dataset.add_pair("p", with_gt=False)
+    gt = dataset.root / "gt_bad.txt"
+    if gt_text is not None:
+        gt.write_text(gt_text)
+    row["gt"] = gt.name
+    spec = dataset.specs()[0]
+    out = run_pair(spec, fast_config, fake_engine.register)
+    assert out.status == "failed" and out.failure == "ground_truth"
+    assert out.message.startswith(f"ground truth {gt}")
+    assert expected in out.message
+    assert out.transforms_row[6:22] == [""] * 16
+
+
+def test_run_pair_engine_exception_and_failed_status(dataset, fast_config):
+    dataset.add_pair("raises", n=fake_engine.RAISE_N)
+    dataset.add_pair("fails", n=fake_engine.FAIL_N)
+    raises, fails = dataset.specs()
+    out = run_pair(raises, fast_config, fake_engine.register)
+    assert (out.status, out.failure) == ("failed", "register")
+    assert out.message == "ValueError: degenerate input: the source cloud is planar"
+    out = run_pair(fails, fast_config, fake_engine.register)
+    assert (out.status, out.message) == ("failed", "too few inliers (3 < 6)")
+    assert out.transform is None and out.errors_row is None
+    assert out.fitness == 0.01  # quality figures of a failed result are still reported
+
+
+# ----------------------------------------------------------------------------------------------------
+# a full batch
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_batch_outputs_follow_the_contract(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    summary = run(four_pairs, fast_config, out)
+
+    header, rows = read_csv(out / "transforms.csv")
+    assert header == list(TRANSFORMS_COLUMNS)
+    assert header[:6] == ["pair_id", "source", "target", "status", "message", "scale"]
+    assert header[6:22] == [f"m{i}{j}" for i in range(4) for j in range(4)]
+    assert header[22:] == ["fitness", "inlier_rmse", "runtime_s", "seed"]
+    rows = by_id(rows)
+    assert sorted(rows) == sorted(r["pair_id"] for r in four_pairs.rows)
+
+    eheader, erows = read_csv(out / "tm_errors.csv")
+    assert eheader == list(ERRORS_COLUMNS)
+    erows = by_id(erows)
+    assert sorted(erows) == sorted(four_pairs.gt)  # pairs with ground truth only
+
+    specs = {s.pair_id: s for s in four_pairs.specs()}
+    for pid, row in rows.items():
+        assert row["status"] == "ok" and row["message"] == ""
+        assert row["source"] == str(specs[pid].source) and row["target"] == str(specs[pid].target)
+        assert int(row["seed"]) == derive_seed(7, pid)
+        T_csv = row_matrix(row)
+        T_file = read_matrix(out / "matrices" / f"{pid}.txt")
+        assert np.array_equal(T_csv, T_file)  # full precision on both sides
+        assert float(row["scale"]) == pytest.approx(np.cbrt(np.linalg.det(T_csv[:3, :3])), rel=1e-12)
+        assert float(row["fitness"]) == 0.875
+        assert float(row["runtime_s"]) >= 0
+        if pid in four_pairs.gt:
+            target = load_point_cloud(specs[pid].target)
+            diag = float(np.linalg.norm(target.max(0) - target.min(0)))
+            e = transform_errors(T_file, four_pairs.gt[pid], diag)
+            er = erows[pid]
+            assert float(er["rot_err_deg"]) == pytest.approx(e.rot_err_deg, abs=1e-9)
+            assert float(er["trans_err"]) == pytest.approx(e.trans_err, rel=1e-9)
+            assert float(er["trans_err_rel"]) == pytest.approx(e.trans_err / diag, rel=1e-9)
+            assert float(er["scale_err"]) == pytest.approx(e.scale_err, abs=1e-12)
+            assert float(er["tm_err"]) == pytest.approx(e.tm_err, rel=1e-9)
+            assert 0 < float(er["trans_err_rel"]) < 2e-7  # only the fake's seeded offset
+            assert er["success"] == "true"
+    # the UTM-offset pair keeps its 1e6 translation at full precision
+    assert abs(float(rows["ply_pcd_utm"]["m13"]) - four_pairs.gt["ply_pcd_utm"][1, 3]) < 1e-3
+
+    assert load_config(out / "config.yaml") == fast_config
+    assert not (out / LOCK_NAME).exists()
+    for name in ("transforms.csv", "tm_errors.csv"):
+        assert (out / name).read_bytes().endswith(b"\n")
+
+    assert (summary.n_pairs, summary.n_ok, summary.n_failed, summary.n_run, summary.n_resumed) == (5, 5, 0, 5, 0)
+    assert (summary.n_gt, summary.n_success, summary.success_rate) == (4, 4, 1.0)
+    assert summary.all_ok and summary.failures == ()
+    assert summary.median_rot_err_deg < 1e-5 and summary.median_trans_err_rel < 2e-7
+    assert summary.median_scale_err < 1e-12 and summary.wall_time_s > 0
+
+
+def test_bad_inputs_give_failed_rows_and_the_rest_completes(four_pairs, fast_config, tmp_path):
+    ds = four_pairs
+    bad = ds.root / "bad"
+    bad.mkdir()
+    good_tgt = ds.rows[0]["target"]
+    (bad / "empty.ply").write_bytes(b"")
+    (bad / "noise.ply").write_bytes(np.random.default_rng(1).bytes(3000))
+    (bad / "noise.pcd").write_bytes(np.random.default_rng(2).bytes(3000))
+    write_cloud(bad / "two.xyz", np.array([[0.0, 0, 0], [1, 1, 1]]))
+    (bad / "mesh.obj").write_text("v 0 0 0\n")
+    ds.add_raw("missing", "bad/missing.ply", good_tgt, ds.rows[0]["gt"])
+    ds.add_raw("empty", "bad/empty.ply", good_tgt)
+    ds.add_raw("noise_ply", "bad/noise.ply", good_tgt)
+    ds.add_raw("noise_pcd", good_tgt, "bad/noise.pcd")
+    ds.add_raw("two_points", "bad/two.xyz", good_tgt)
+    ds.add_raw("obj", "bad/mesh.obj", good_tgt)
+    ds.add_raw("gt_missing", ds.rows[0]["source"], good_tgt, "gt/nope.txt")
+    ds.add_pair("raises", n=fake_engine.RAISE_N)
+    ds.add_pair("fails", n=fake_engine.FAIL_N)
+    expected = {
+        "missing": f"{ds.root}/bad/missing.ply: file does not exist",
+        "empty": f"{ds.root}/bad/empty.ply: file is empty",
+        "noise_ply": f"{ds.root}/bad/noise.ply: not a PLY file",
+        "noise_pcd": f"{ds.root}/bad/noise.pcd: not a PCD file",
+        "two_points": f"{ds.root}/bad/two.xyz: too few points",
+        "obj": f"{ds.root}/bad/mesh.obj: unsupported extension",
+        "gt_missing": f"ground truth {ds.root}/gt/nope.txt: file does not exist",
+        "raises": "ValueError: degenerate input: the source cloud is planar",
+        "fails": "too few inliers (3 < 6)",
+    }
+    summary = run(ds, fast_config, tmp_path / "out")
+    rows = by_id(read_csv(tmp_path / "out" / "transforms.csv")[1])
+    assert len(rows) == 5 + len(expected)
+    for pid, msg in expected.items():
+        assert rows[pid]["status"] == "failed", pid
+        assert rows[pid]["message"].startswith(msg), (pid, rows[pid]["message"])
+        assert all(rows[pid][c] == "" for c in ("scale",) + batch.MATRIX_COLUMNS)
+        assert not (tmp_path / "out" / "matrices" / f"{pid}.txt").exists()
+    for pid in ("ply_ply", "pcd_xyz", "xyz_ply", "ply_pcd_utm", "no_gt"):
+        assert rows[pid]["status"] == "ok"
+    erows = by_id(read_csv(tmp_path / "out" / "tm_errors.csv")[1])
+    assert sorted(erows) == sorted(four_pairs.gt.keys() - {"raises", "fails"})
+    assert (summary.n_ok, summary.n_failed) == (5, 9)
+    # success rate over pairs with ground truth: 4 ok of 4 + missing, gt_missing, raises, fails
+    assert (summary.n_gt, summary.n_success) == (8, 4)
+    assert summary.success_rate == 0.5
+    assert dict(summary.failures)["empty"].startswith(expected["empty"])
+
+
+def test_non_finite_points_are_dropped_with_a_warning_in_the_message(dataset, fast_config, tmp_path):
+    row = dataset.add_pair("nan_pts", exts=(".xyz", ".ply"))
+    src = dataset.root / row["source"]
+    with open(src, "a") as fh:  # trailing NaN/inf rows: the first points still correspond
+        fh.write("nan 1 2\n1 inf 2\n0 0 -inf\n")
+    summary = run(dataset, fast_config, tmp_path / "out", workers=1)
+    r = read_csv(tmp_path / "out" / "transforms.csv")[1][0]
+    assert r["status"] == "ok" and summary.n_success == 1
+    assert r["message"] == f"warning: {src}: dropped 3 of 203 points with non-finite (NaN/inf) coordinates"
+
+
+def test_worker_death_gives_failed_row_and_batch_goes_on(four_pairs, fast_config, tmp_path):
+    four_pairs.add_pair("sigkill", n=fake_engine.KILL_N)
+    four_pairs.add_pair("exit3", n=fake_engine.EXIT_N)
+    four_pairs.add_pair("after", exts=(".xyz", ".pcd"))
+    summary = run(four_pairs, fast_config, tmp_path / "out", workers=2)
+    rows = by_id(read_csv(tmp_path / "out" / "transforms.csv")[1])
+    assert rows["sigkill"]["status"] == "failed"
+    assert rows["sigkill"]["message"] == "worker died (signal 9)"
+    assert rows["exit3"]["message"] == "worker died (exit code 3)"
+    assert rows["sigkill"]["seed"] == str(derive_seed(7, "sigkill"))
+    assert all(rows[p]["status"] == "ok" for p in rows if p not in ("sigkill", "exit3"))
+    assert (summary.n_ok, summary.n_failed) == (6, 2)
+
+
+def test_timeout_kills_the_pair_and_batch_goes_on(four_pairs, tmp_path):
+    config = config_from_dict({"seed": 7, "batch": {"time_limit_s": 1.5}})
+    four_pairs.add_pair("hangs", n=fake_engine.SLEEP_N)
+    t0 = time.monotonic()
+    run(four_pairs, config, tmp_path / "out", workers=2)
+    assert time.monotonic() - t0 < 30  # not the fake's 120 s sleep
+    rows = by_id(read_csv(tmp_path / "out" / "transforms.csv")[1])
+    assert rows["hangs"]["message"] == "timed out after 1.5 s"
+    assert 1.5 <= float(rows["hangs"]["runtime_s"]) < 10
+    assert sum(r["status"] == "ok" for r in rows.values()) == 5
+
+
+def test_results_do_not_depend_on_worker_count(four_pairs, fast_config, tmp_path):
+    for i in range(3):
+        four_pairs.add_pair(f"extra{i}", exts=(".pcd", ".pcd"))
+    run(four_pairs, fast_config, tmp_path / "j1", workers=1)
+    run(four_pairs, fast_config, tmp_path / "j2", workers=2)
+    r1 = by_id(read_csv(tmp_path / "j1" / "transforms.csv")[1])
+    r2 = by_id(read_csv(tmp_path / "j2" / "transforms.csv")[1])
+    assert {k: stable(v) for k, v in r1.items()} == {k: stable(v) for k, v in r2.items()}
+    assert (tmp_path / "j1" / "tm_errors.csv").read_text().splitlines()[0] == ",".join(ERRORS_COLUMNS)
+    assert sorted(read_csv(tmp_path / "j1" / "tm_errors.csv")[1], key=lambda r: r["pair_id"]) == sorted(
+        read_csv(tmp_path / "j2" / "tm_errors.csv")[1], key=lambda r: r["pair_id"]
+    )
+    for pid in r1:
+        a = (tmp_path / "j1" / "matrices" / f"{pid}.txt").read_bytes()
+        assert a == (tmp_path / "j2" / "matrices" / f"{pid}.txt").read_bytes()
+    # the seed reaches the engine: a different base seed changes the transforms
+    run(four_pairs, config_from_dict({"seed": 8}), tmp_path / "seed8", workers=2)
+    r8 = by_id(read_csv(tmp_path / "seed8" / "transforms.csv")[1])
+    assert r8["ply_ply"]["m03"] != r1["ply_ply"]["m03"]
+
+
+# ----------------------------------------------------------------------------------------------------
+# resume
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_existing_outputs_are_never_overwritten_without_resume(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    before = (out / "transforms.csv").read_bytes()
+    with pytest.raises(BatchError, match="pass --resume"):
+        run(four_pairs, fast_config, out)
+    assert (out / "transforms.csv").read_bytes() == before
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_resume_skips_done_pairs_and_repairs_interrupted_files(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    all_rows = list(four_pairs.rows)
+    four_pairs.rows = all_rows[:2]
+    run(four_pairs, fast_config, out, workers=1)
+    done_bytes = (out / "transforms.csv").read_bytes()
+    # what a crash could leave: a partial last line, and an error row of a pair killed before its commit
+    with open(out / "transforms.csv", "ab") as fh:
+        fh.write(b"xyz_ply,/some/where.xyz,/x.ply,ok,,1.0,0.5")
+    with open(out / "tm_errors.csv", "ab") as fh:
+        fh.write(b"xyz_ply,0.1,0.2,0.3,0.4,0.5,true\n")
+
+    four_pairs.rows = all_rows
+    summary = run(four_pairs, fast_config, out, workers=2, resume=True)
+    assert (summary.n_run, summary.n_resumed, summary.n_ok) == (3, 2, 5)
+    text = (out / "transforms.csv").read_bytes()
+    assert text.startswith(done_bytes)  # finished rows kept byte for byte
+    assert text.endswith(b"\n") and b"/some/where.xyz" not in text
+    ids = [r["pair_id"] for r in read_csv(out / "transforms.csv")[1]]
+    assert sorted(ids) == sorted(r["pair_id"] for r in all_rows)  # each exactly once
+    eids = [r["pair_id"] for r in read_csv(out / "tm_errors.csv")[1]]
+    assert sorted(eids) == sorted(four_pairs.gt)
+    assert by_id(read_csv(out / "tm_errors.csv")[1])["xyz_ply"]["rot_err_deg"] != "0.1"
+
+    # nothing left to do: a second resume runs nothing
+    summary = run(four_pairs, fast_config, out, resume=True)
+    assert (summary.n_run, summary.n_resumed) == (0, 5)
+
+
+def test_resume_refuses_a_different_config(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    other = config_from_dict({"seed": 7, "engine": {"tensor": {"knn": 12}}})
+    default_knn = fast_config.engine.tensor.knn
+    with pytest.raises(BatchError, match=rf"engine\.tensor\.knn: {default_knn} -> 12"):
+        run(four_pairs, other, out, resume=True)
+    # only the batch section may differ (workers, time limit)
+    run(four_pairs, config_from_dict({"seed": 7, "batch": {"workers": 1}}), out, resume=True)
+
+
+DRIVER = textwrap.dedent(
+    """
+    import sys
+    import fake_engine
+    from gctr_cli.batch import run_batch
+    from gctr_cli.config import config_from_dict
+    from gctr_cli.manifest import read_manifest
+
+    if __name__ == "__main__":
+        manifest, outdir, resume = sys.argv[1], sys.argv[2], sys.argv[3] == "resume"
+        run_batch(read_manifest(manifest), config_from_dict({"seed": 7}), outdir, workers=2,
+                  resume=resume, register_fn=fake_engine.slow_register)
+    """
+)
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.append(int(stat.parent.name))
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[0] not in ("Z", "X")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc and SIGKILL")
+def test_sigkill_mid_run_then_resume_gives_every_pair_once(dataset, tmp_path, subprocess_env):
+    exts = [(".ply", ".pcd"), (".pcd", ".xyz"), (".xyz", ".ply"), (".ply", ".ply")]
+    for i in range(8):
+        dataset.add_pair(f"pair_{i}", exts=exts[i % 4], with_gt=i % 3 != 2)
+    manifest = dataset.manifest()
+    driver = tmp_path / "driver.py"
+    driver.write_text(DRIVER)
+    out = tmp_path / "out"
+    config = config_from_dict({"seed": 7})
+
+    proc = subprocess.Popen([PYTHON, str(driver), str(manifest), str(out), "fresh"], env=subprocess_env)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            t = out / "transforms.csv"
+            if t.exists() and t.read_bytes().count(b"\n") >= 3:  # header + 2 finished pairs
+                break
+            assert proc.poll() is None, "driver ended early"
+            time.sleep(0.02)
+        else:
+            pytest.fail("no rows within 60 s")
+
+        # a second batch on the same folder is refused while the first one runs
+        with pytest.raises(LockError, match=rf"another gctr batch \(pid {proc.pid}\) is writing to {out}"):
+            run_batch(dataset.specs(), config, out, resume=True, register_fn=fake_engine.register)
+
+        workers = _children(proc.pid)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    # its workers die with it (no orphans left computing)
+    deadline = time.monotonic() + 10
+    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(_alive(w) for w in workers)
+
+    rows_before = read_csv(out / "transforms.csv")[1]
+    assert 2 <= len(rows_before) < 8, "the kill must happen mid-run"
+    assert (out / LOCK_NAME).exists()  # stale: its process is gone
+    with open(out / "transforms.csv", "ab") as fh:  # and the worst case of a torn write
+        fh.write(b"pair_9,/a.ply,/b.ply,ok,,1.0")
+
+    config = load_config(out / "config.yaml")  # what the killed run used (same as `-c OUTDIR/config.yaml`)
+    summary = run_batch(dataset.specs(), config, out, workers=2, resume=True, register_fn=fake_engine.register)
+    assert summary.n_resumed == len(rows_before) and summary.n_ok == 8
+    raw = (out / "transforms.csv").read_bytes()
+    assert raw.endswith(b"\n") and b"pair_9" not in raw
+    rows = read_csv(out / "transforms.csv")[1]
+    assert sorted(r["pair_id"] for r in rows) == [f"pair_{i}" for i in range(8)]
+    erows = read_csv(out / "tm_errors.csv")[1]
+    assert sorted(r["pair_id"] for r in erows) == sorted(dataset.gt)
+    assert not (out / LOCK_NAME).exists()
+
+    # same transforms as an uninterrupted run
+    run_batch(dataset.specs(), config, tmp_path / "ref", workers=1, register_fn=fake_engine.register)
+    ref = read_csv(tmp_path / "ref" / "transforms.csv")[1]
+    assert {r["pair_id"]: stable(r) for r in rows} == {r["pair_id"]: stable(r) for r in ref}
+    ref_err = {r["pair_id"]: r for r in read_csv(tmp_path / "ref" / "tm_errors.csv")[1]}
+    assert {r["pair_id"]: r for r in erows} == ref_err
+    for i in range(8):
+        m = f"matrices/pair_{i}.txt"
+        assert (out / m).read_bytes() == (tmp_path / "ref" / m).read_bytes()
+    assert not list((out / "matrices").glob(".*"))  # no temporary files left behind
+
+
+# ----------------------------------------------------------------------------------------------------
+# lock file
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_lock_of_a_live_process_refuses_and_stale_lock_is_taken_over(dataset, fast_config, tmp_path):
+    dataset.add_pair("a")
+    out = tmp_path / "out"
+    out.mkdir()
+    sleeper = subprocess.Popen([PYTHON, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / LOCK_NAME).write_text(f"{sleeper.pid}\n")
+        with pytest.raises(LockError, match=rf"pid {sleeper.pid}.*delete {out / LOCK_NAME}"):
+            run(dataset, fast_config, out)
+        assert not (out / "transforms.csv").exists()  # nothing run
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    # the holder is gone: the lock is stale and taken over
+    summary = run(dataset, fast_config, out)
+    assert summary.n_ok == 1
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_lock_is_exclusive_and_released():
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        with batch.OutdirLock(Path(d)) as lock:
+            text = (Path(d) / LOCK_NAME).read_text().split()
+            assert int(text[0]) == os.getpid()
+            with pytest.raises(LockError):
+                batch.OutdirLock(Path(d)).acquire()
+            assert lock.held
+        assert not (Path(d) / LOCK_NAME).exists()
+
+
+def test_register_fn_must_be_importable_by_workers(dataset, fast_config, tmp_path):
+    dataset.add_pair("a")
+
+    def local_fn(source, target, config=None, seed=0):  # pragma: no cover - never called
+        raise AssertionError
+
+    with pytest.raises(BatchError, match="module-level function"):
+        run(dataset, fast_config, tmp_path / "out", register_fn=local_fn)

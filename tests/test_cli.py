@@ -1,0 +1,479 @@
+"""The ``gctr`` command line: help, config, manifest, register and batch (exit codes 0/1/2/3).
+
+Batch and register tests swap in the deterministic fake engine (``fake_engine.py``) through
+monkeypatch, so the production command path is exercised with everything but the algorithm.
+Tests marked ``engine`` run the real GCTR engine end to end (skipped while it is a placeholder).
+"""
+
+from __future__ import annotations
+
+import functools
+import subprocess
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+import fake_engine
+from conftest import (
+    PYTHON,
+    REPO,
+    apply,
+    bumpy_surface,
+    read_csv,
+    rotation,
+    row_matrix,
+    similarity,
+    write_cloud,
+    write_manifest_rows,
+)
+from gctr_cli import batch, cli
+from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
+from gctr_cli.config import Config, config_from_dict
+from gctr_cli.io import load_point_cloud, read_matrix, write_matrix
+
+
+@pytest.fixture
+def runner():
+    return CliRunner()
+
+
+@pytest.fixture
+def fake_batch(monkeypatch):
+    """``gctr batch`` runs the fake engine in its workers."""
+    monkeypatch.setattr(batch, "run_batch", functools.partial(batch.run_batch, register_fn=fake_engine.register))
+
+
+@pytest.fixture
+def fake_register(monkeypatch):
+    """``gctr register`` (in-process) uses the fake engine."""
+    import gctr_cli.engine
+
+    monkeypatch.setattr(gctr_cli.engine, "register", fake_engine.register)
+
+
+def invoke(runner, *args):
+    return runner.invoke(cli.main, [str(a) for a in args], catch_exceptions=False)
+
+
+def gctr(*args, env=None, cwd=None, timeout=300):
+    return subprocess.run([PYTHON, "-m", "gctr_cli", *map(str, args)], capture_output=True, text=True,
+                          env=env, cwd=cwd, timeout=timeout)
+
+
+# ----------------------------------------------------------------------------------------------------
+# help and config
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_help_is_lazy_and_documents_exit_codes():
+    code = textwrap.dedent(
+        """
+        import sys
+        from gctr_cli.cli import main
+        for args in (["--help"], ["batch", "--help"], ["register", "--help"], ["config", "--help"]):
+            try:
+                main(args)
+            except SystemExit as e:
+                assert e.code == 0, e.code
+        heavy = [m for m in ("open3d", "numpy", "scipy", "pydantic", "gctr_cli.engine") if m in sys.modules]
+        print("HEAVY:", heavy)
+        """
+    )
+    out = subprocess.run([PYTHON, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY: []" in out.stdout
+    assert "Exit codes:" in out.stdout and "--min-success" in out.stdout
+    for line in ("0  every pair registered", "1  at least one pair failed", "2  usage, manifest, config",
+                 "3  --min-success given"):
+        assert line in out.stdout
+
+
+def test_cli_thread_variables_match_the_batch_workers():
+    assert cli.THREAD_ENV_VARS == batch.THREAD_ENV_VARS
+
+
+def test_python_m_gctr_cli(tmp_path):
+    out = gctr("--version")
+    assert out.returncode == 0 and "gctr" in out.stdout
+    out = gctr("batch", "--help")
+    assert out.returncode == 0 and "Exit codes:" in out.stdout
+    out = gctr("frobnicate")
+    assert out.returncode == 2 and "No such command" in out.stderr
+
+
+def test_config_show_is_commented_yaml_of_the_defaults(runner):
+    res = invoke(runner, "config", "show")
+    assert res.exit_code == 0
+    assert "# base seed" in res.output and "# working size of each cloud" in res.output
+    assert "one of: auto, edge_ratio, umeyama" in res.output
+    data = yaml.safe_load(res.output)
+    assert data == Config().model_dump(mode="json")
+    assert config_from_dict(data) == Config()
+
+
+def test_config_show_file_and_check(runner, tmp_path):
+    good = tmp_path / "good.yaml"
+    good.write_text("seed: 42\nengine:\n  refine:\n    enabled: false\nbatch:\n  workers: 3\n")
+    res = invoke(runner, "config", "show", good)
+    assert res.exit_code == 0
+    assert yaml.safe_load(res.output)["seed"] == 42
+    assert yaml.safe_load(res.output)["engine"]["refine"]["enabled"] is False
+    res = invoke(runner, "config", "check", good)
+    assert (res.exit_code, res.output.strip()) == (0, f"ok: {good}")
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("engine:\n  tensor:\n    knn: 40\n    foo: 1\n", ["engine.tensor.foo: unknown key"]),
+        ("batch:\n  workers: many\n", ["batch.workers", "integer"]),
+        ("success:\n  rotation_deg: -1\n", ["success.rotation_deg", "greater than 0"]),
+        ("seed: [1, 2\n", ["not valid YAML"]),
+        ("- just\n- a list\n", ["top level must be a mapping"]),
+    ],
+)
+def test_config_errors_exit_2_naming_the_key(runner, tmp_path, text, expected):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    res = invoke(runner, "config", "check", bad)
+    assert res.exit_code == 2
+    for piece in expected:
+        assert piece in res.stderr
+    # the same error stops a batch before anything runs
+    (tmp_path / "pairs.csv").write_text("pair_id,source,target\na,a.ply,b.ply\n")
+    res = invoke(runner, "batch", tmp_path / "pairs.csv", "-c", bad, "-o", tmp_path / "out")
+    assert res.exit_code == 2 and expected[0] in res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_config_check_missing_file_via_subprocess(tmp_path):
+    out = gctr("config", "check", tmp_path / "nope.yaml")
+    assert out.returncode == 2 and "does not exist" in out.stderr
+
+
+# ----------------------------------------------------------------------------------------------------
+# manifest
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_manifest_command(runner, tmp_path):
+    rng = np.random.default_rng(0)
+    for stem, se, te in (("a", ".ply", ".pcd"), ("b", ".xyz", ".ply"), ("c", ".pcd", ".xyz")):
+        write_cloud(tmp_path / "lidar" / f"{stem}{se}", bumpy_surface(rng, 50))
+        write_cloud(tmp_path / "photo" / f"{stem}{te}", bumpy_surface(rng, 50))
+    write_cloud(tmp_path / "photo" / "only_here.ply", bumpy_surface(rng, 50))
+    write_matrix(tmp_path / "gt" / "a.txt", np.eye(4))
+    res = invoke(runner, "manifest", tmp_path / "lidar", tmp_path / "photo", "--gt-dir", tmp_path / "gt",
+                 "-o", tmp_path / "pairs.csv")
+    assert res.exit_code == 0, res.output
+    assert "wrote 3 pairs (1 with ground truth)" in res.stdout
+    from gctr_cli.manifest import read_manifest
+
+    pairs = read_manifest(tmp_path / "pairs.csv")
+    assert [p.pair_id for p in pairs] == ["a", "b", "c"]
+    assert pairs[0].source == (tmp_path / "lidar" / "a.ply").resolve()
+    assert pairs[0].gt == (tmp_path / "gt" / "a.txt").resolve() and pairs[1].gt is None
+
+    res = invoke(runner, "manifest", tmp_path / "lidar", tmp_path / "nope", "-o", tmp_path / "p2.csv")
+    assert res.exit_code == 2 and "does not exist" in res.stderr
+    assert not (tmp_path / "p2.csv").exists()
+
+
+# ----------------------------------------------------------------------------------------------------
+# register
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_register_command(runner, fake_register, four_pairs, tmp_path):
+    row = four_pairs.rows[1]  # .pcd -> .xyz
+    src, tgt, gt = (four_pairs.root / row[k] for k in ("source", "target", "gt"))
+    out_matrix = tmp_path / "est.txt"
+    res = invoke(runner, "register", src, tgt, "-o", out_matrix, "--gt", gt, "--seed", 11)
+    assert res.exit_code == 0, res.output
+    lines = res.stdout.splitlines()
+    assert lines[0] == "status: ok"
+    i = lines.index("matrix (source -> target):")
+    printed = np.array([[float(v) for v in lines[i + k].split()] for k in range(1, 5)])
+    assert np.array_equal(printed, read_matrix(out_matrix))  # printed at full precision
+    np.testing.assert_allclose(printed, four_pairs.gt["pcd_xyz"], atol=1e-6)
+    assert "seed: 11" in lines and "success: true" in lines and "fitness: 0.875" in lines
+    for key in ("scale: ", "inlier_rmse: ", "runtime_s: ", "rot_err_deg: ", "trans_err_rel: ", "scale_err: ",
+                "tm_err: "):
+        assert any(line.startswith(key) for line in lines), key
+    # the seed changes the (fake) result; default seed = config seed
+    res2 = invoke(runner, "register", src, tgt)
+    assert res2.exit_code == 0 and "seed: 0" in res2.stdout.splitlines()
+
+
+def test_register_exit_codes(runner, fake_register, dataset, tmp_path):
+    dataset.add_pair("fails", n=fake_engine.FAIL_N)
+    row = dataset.rows[0]
+    src, tgt = dataset.root / row["source"], dataset.root / row["target"]
+    res = invoke(runner, "register", src, tgt, "-o", tmp_path / "m.txt")
+    assert res.exit_code == 1
+    assert "status: failed" in res.stdout and "message: too few inliers (3 < 6)" in res.stdout
+    assert not (tmp_path / "m.txt").exists()
+
+    res = invoke(runner, "register", tmp_path / "missing.ply", tgt)
+    assert res.exit_code == 2 and f"{tmp_path}/missing.ply: file does not exist" in res.stderr
+    (tmp_path / "bad_gt.txt").write_text("1 2 3\n")
+    res = invoke(runner, "register", src, tgt, "--gt", tmp_path / "bad_gt.txt")
+    assert res.exit_code == 2 and f"ground truth {tmp_path}/bad_gt.txt: line 1 has 3 numbers" in res.stderr
+    (tmp_path / "bad.yaml").write_text("engine: {nope: 1}\n")
+    res = invoke(runner, "register", src, tgt, "-c", tmp_path / "bad.yaml")
+    assert res.exit_code == 2 and "engine.nope: unknown key" in res.stderr
+
+
+# ----------------------------------------------------------------------------------------------------
+# batch
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_batch_all_ok_exit_0_and_resume(runner, fake_batch, four_pairs, tmp_path):
+    manifest = four_pairs.manifest()
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("seed: 3\nbatch:\n  workers: 2\n")
+    out = tmp_path / "out"
+    res = invoke(runner, "batch", manifest, "-c", cfg, "-o", out, "--min-success", 1.0)
+    assert res.exit_code == 0, res.output
+    assert "pairs: 5 (5 ok, 0 failed)" in res.stdout
+    assert "success: 4/4 pairs with ground truth (100.0%)" in res.stdout
+    assert "median errors: rotation" in res.stdout and "wall time:" in res.stdout
+    header, rows = read_csv(out / "transforms.csv")
+    assert header == list(TRANSFORMS_COLUMNS) and len(rows) == 5
+    assert read_csv(out / "tm_errors.csv")[0] == list(ERRORS_COLUMNS)
+    for r in rows:
+        assert np.array_equal(row_matrix(r), read_matrix(out / "matrices" / f"{r['pair_id']}.txt"))
+        assert int(r["seed"]) == batch.derive_seed(3, r["pair_id"])
+    assert yaml.safe_load((out / "config.yaml").read_text())["batch"]["workers"] == 2
+    assert res.stderr == ""  # no progress bar when stderr is not a terminal
+
+    # a rerun without --resume refuses to touch the folder
+    res = invoke(runner, "batch", manifest, "-c", cfg, "-o", out)
+    assert res.exit_code == 2 and "--resume" in res.stderr
+    # with --resume there is nothing left to do
+    res = invoke(runner, "batch", manifest, "-c", cfg, "-o", out, "--resume", "-j", 1)
+    assert res.exit_code == 0
+    assert "pairs: 5 (5 ok, 0 failed) (5 done by an earlier run)" in res.stdout
+    assert len(read_csv(out / "transforms.csv")[1]) == 5
+
+
+def test_batch_exit_1_and_3(runner, fake_batch, four_pairs, tmp_path):
+    ds = four_pairs
+    (ds.root / "empty.pcd").write_bytes(b"")
+    ds.add_raw("broken", "empty.pcd", ds.rows[0]["target"], ds.rows[0]["gt"])
+    ds.add_pair("sigkill", n=fake_engine.KILL_N, with_gt=False)
+    manifest = ds.manifest()
+    # 4 of 5 pairs with gt succeed (80 %); two pairs failed
+    res = invoke(runner, "batch", manifest, "-o", tmp_path / "o1", "-j", 2)
+    assert res.exit_code == 1
+    assert "pairs: 7 (5 ok, 2 failed)" in res.stdout
+    assert "success: 4/5 pairs with ground truth (80.0%)" in res.stdout
+    assert f"broken: {ds.root}/empty.pcd: file is empty" in res.stdout
+    assert "sigkill: worker died (signal 9)" in res.stdout
+
+    res = invoke(runner, "batch", manifest, "-o", tmp_path / "o2", "-j", 2, "--min-success", 0.8)
+    assert res.exit_code == 1  # rate reached, but pairs failed
+    res = invoke(runner, "batch", manifest, "-o", tmp_path / "o3", "-j", 2, "--min-success", 0.81, "-q")
+    assert res.exit_code == 3  # takes precedence over 1
+    assert "success rate 80.0% is below --min-success 81.0%" in res.stderr
+
+
+def test_batch_exit_2_nothing_run(runner, monkeypatch, four_pairs, tmp_path):
+    def must_not_run(*a, **k):  # pragma: no cover
+        raise AssertionError("run_batch called")
+
+    monkeypatch.setattr(batch, "run_batch", must_not_run)
+    out = tmp_path / "out"
+    rows = four_pairs.rows
+    cases = {
+        "dup.csv": (rows[:2] + [dict(rows[0], source=rows[2]["source"])], "duplicate pair_id 'ply_ply'"),
+        "nogt.csv": ([dict(r, gt="") for r in rows], "--min-success needs pairs with ground truth"),
+    }
+    for name, (mrows, msg) in cases.items():
+        manifest = write_manifest_rows(four_pairs.root / name, mrows)
+        res = invoke(runner, "batch", manifest, "-o", out, "--min-success", 0.5)
+        assert res.exit_code == 2, (name, res.output)
+        assert msg in res.stderr
+    (four_pairs.root / "nocol.csv").write_text("pair_id,source\na,b.ply\n")
+    res = invoke(runner, "batch", four_pairs.root / "nocol.csv", "-o", out)
+    assert res.exit_code == 2 and "missing required column 'target'" in res.stderr
+    res = invoke(runner, "batch", tmp_path / "nope.csv", "-o", out)
+    assert res.exit_code == 2 and "manifest does not exist" in res.stderr
+    res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "--min-success", 1.5)
+    assert res.exit_code == 2 and "--min-success" in res.stderr
+    res = invoke(runner, "batch", four_pairs.manifest())
+    assert res.exit_code == 2 and "Missing option '-o'" in res.stderr
+    assert not out.exists()
+
+
+def test_batch_manifest_error_via_subprocess(four_pairs, tmp_path):
+    rows = four_pairs.rows
+    manifest = write_manifest_rows(four_pairs.root / "dup.csv", rows + [rows[1]])
+    out = gctr("batch", manifest, "-o", tmp_path / "out")
+    assert out.returncode == 2
+    assert "duplicate pair_id 'pcd_xyz'" in out.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_batch_lock_refusal_via_cli(runner, fake_batch, four_pairs, tmp_path):
+    import subprocess as sp
+
+    out = tmp_path / "out"
+    out.mkdir()
+    sleeper = sp.Popen([PYTHON, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / batch.LOCK_NAME).write_text(f"{sleeper.pid}\n")
+        res = invoke(runner, "batch", four_pairs.manifest(), "-o", out)
+        assert res.exit_code == 2
+        assert f"another gctr batch (pid {sleeper.pid}) is writing to {out}" in res.stderr
+        assert not (out / "transforms.csv").exists()
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
+CLI_DRIVER = textwrap.dedent(
+    """
+    import functools, sys
+    import fake_engine
+    from gctr_cli import batch, cli
+
+    if __name__ == "__main__":
+        batch.run_batch = functools.partial(batch.run_batch, register_fn=fake_engine.slow_register)
+        cli.main(sys.argv[1:], prog_name="gctr")
+    """
+)
+
+
+def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, subprocess_env):
+    import signal
+    import time
+
+    for i in range(6):
+        dataset.add_pair(f"p{i}", exts=((".ply", ".pcd"), (".xyz", ".ply"))[i % 2])
+    manifest = dataset.manifest()
+    driver = tmp_path / "gctr_driver.py"
+    driver.write_text(CLI_DRIVER)
+    out = tmp_path / "out"
+    cmd = [PYTHON, str(driver), "batch", str(manifest), "-o", str(out), "-j", "2"]
+    proc = subprocess.Popen(cmd, env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            t = out / "transforms.csv"
+            if t.exists() and t.read_bytes().count(b"\n") >= 2:
+                break
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert "interrupted" in stderr and "--resume" in stderr
+    assert not (out / batch.LOCK_NAME).exists()  # released on the way out
+    n_before = len(read_csv(out / "transforms.csv")[1])
+    assert 1 <= n_before < 6
+
+    done = subprocess.run(cmd + ["--resume"], env=subprocess_env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert f"pairs: 6 (6 ok, 0 failed) ({n_before} done by an earlier run)" in done.stdout
+    ids = sorted(r["pair_id"] for r in read_csv(out / "transforms.csv")[1])
+    assert ids == [f"p{i}" for i in range(6)]
+
+
+# ----------------------------------------------------------------------------------------------------
+# end to end with the real engine
+# ----------------------------------------------------------------------------------------------------
+
+
+def _real_pairs(root: Path) -> tuple[Path, dict[str, np.ndarray]]:
+    """Four cross-source-like pairs in mixed formats: different samplings, noise, partial overlap.
+
+    Built from the shipped bunny model when present, otherwise from a synthetic bumpy surface.
+    """
+    rng = np.random.default_rng(2024)
+    bunny = REPO / "data" / "models" / "bunny.ply"
+    base = load_point_cloud(bunny) if bunny.exists() else bumpy_surface(rng, 30000)
+    base = base - base.mean(0)
+    diag = float(np.linalg.norm(base.max(0) - base.min(0)))
+    specs = [
+        ("p_ply_pcd", ".ply", ".pcd", 1.0, 25.0),
+        ("p_pcd_xyz", ".pcd", ".xyz", 2.5, 60.0),
+        ("p_xyz_ply", ".xyz", ".ply", 0.4, 100.0),
+        ("p_ply_ply_utm", ".ply", ".ply", 1.7, 45.0),
+    ]
+    rows, gts = [], {}
+    for pid, se, te, scale, angle in specs:
+        idx_s = rng.choice(len(base), size=min(6000, len(base)), replace=False)
+        idx_t = rng.choice(len(base), size=min(9000, len(base)), replace=False)
+        src = base[idx_s] + rng.normal(scale=0.002 * diag, size=(len(idx_s), 3))
+        tgt_model = base[idx_t]
+        # partial overlap: the target misses a slab of the model
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        proj = tgt_model @ axis
+        tgt_model = tgt_model[proj < np.quantile(proj, 0.85)]
+        t = rng.uniform(-1, 1, 3) * diag
+        if pid.endswith("utm"):
+            t = t + np.array([4.6e5, 5.2e6, 300.0])
+        T = similarity(scale, rotation(rng.normal(size=3), angle), t)
+        tgt = apply(T, tgt_model) + rng.normal(scale=0.003 * diag * scale, size=(len(tgt_model), 3))
+        s_path = write_cloud(root / "src" / f"{pid}{se}", src)
+        t_path = write_cloud(root / "tgt" / f"{pid}{te}", tgt)
+        write_matrix(root / "gt" / f"{pid}.txt", T)
+        gts[pid] = T
+        rows.append({"pair_id": pid, "source": s_path.relative_to(root).as_posix(),
+                     "target": t_path.relative_to(root).as_posix(), "gt": f"gt/{pid}.txt"})
+    return write_manifest_rows(root / "pairs.csv", rows), gts
+
+
+@pytest.mark.engine
+def test_real_engine_batch_end_to_end(tmp_path, subprocess_env):
+    manifest, gts = _real_pairs(tmp_path / "data")
+    out2 = gctr("batch", manifest, "-o", tmp_path / "j2", "-j", 2, "--min-success", 0.75, env=subprocess_env)
+    assert out2.returncode == 0, out2.stdout + out2.stderr
+    assert "pairs: 4 (4 ok, 0 failed)" in out2.stdout
+    header, rows = read_csv(tmp_path / "j2" / "transforms.csv")
+    assert header == list(TRANSFORMS_COLUMNS)
+    eheader, erows = read_csv(tmp_path / "j2" / "tm_errors.csv")
+    assert eheader == list(ERRORS_COLUMNS) and len(erows) == 4
+    cfg = Config().success
+    for r in rows:
+        T = read_matrix(tmp_path / "j2" / "matrices" / f"{r['pair_id']}.txt")
+        assert np.array_equal(row_matrix(r), T)
+        assert 0 < float(r["fitness"]) <= 1
+    n_success = 0
+    for e in erows:
+        n_success += e["success"] == "true"
+        if e["success"] == "true":
+            assert float(e["rot_err_deg"]) < cfg.rotation_deg
+            assert float(e["trans_err_rel"]) < cfg.translation_rel
+            assert float(e["scale_err"]) < cfg.scale
+    assert n_success >= 3
+
+    out1 = gctr("batch", manifest, "-o", tmp_path / "j1", "-j", 1, "-q", env=subprocess_env)
+    assert out1.returncode == 0, out1.stderr
+    r1 = {r["pair_id"]: r for r in read_csv(tmp_path / "j1" / "transforms.csv")[1]}
+    for r in rows:
+        assert [r[c] for c in batch.MATRIX_COLUMNS + ("scale", "seed")] == [
+            r1[r["pair_id"]][c] for c in batch.MATRIX_COLUMNS + ("scale", "seed")
+        ], r["pair_id"]
+
+    # `gctr register --seed <seed column>` reproduces a batch row exactly
+    root = tmp_path / "data"
+    row = next(r for r in rows if r["pair_id"] == "p_pcd_xyz")
+    reg = gctr("register", root / "src" / "p_pcd_xyz.pcd", root / "tgt" / "p_pcd_xyz.xyz", "--gt",
+               root / "gt" / "p_pcd_xyz.txt", "--seed", row["seed"], "-o", tmp_path / "m.txt", env=subprocess_env)
+    assert reg.returncode == 0, reg.stderr
+    assert "status: ok" in reg.stdout and f"seed: {row['seed']}" in reg.stdout
+    e = {r["pair_id"]: r for r in erows}["p_pcd_xyz"]
+    assert f"success: {e['success']}" in reg.stdout
+    assert (tmp_path / "m.txt").read_bytes() == (tmp_path / "j2" / "matrices" / "p_pcd_xyz.txt").read_bytes()
