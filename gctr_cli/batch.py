@@ -208,10 +208,10 @@ def _failed(spec: Any, seed: int, message: str, failure: str, runtime_s: float, 
     )
 
 
-def _default_register() -> RegisterFn:
-    from gctr_cli import engine
+def _default_register(config: Config) -> RegisterFn:
+    from gctr_cli.methods import get_register_fn
 
-    return engine.register
+    return get_register_fn(config.method)
 
 
 def _exc_message(exc: BaseException) -> str:
@@ -270,9 +270,11 @@ def run_pair(
             return _failed(spec, seed, f"ground truth {spec.gt}: {_exc_message(exc)}", "ground_truth", elapsed())
 
     # 3. registration
-    fn = register_fn if register_fn is not None else _default_register()
+    from gctr_cli.methods import method_config
+
+    fn = register_fn if register_fn is not None else _default_register(config)
     try:
-        result = fn(source, target, config.engine, seed=seed)
+        result = fn(source, target, method_config(config), seed=seed)
     except Exception as exc:  # noqa: BLE001 - every problem becomes a failed row
         logger.debug("pair %s: register raised", spec.pair_id, exc_info=True)
         return _failed(spec, seed, _exc_message(exc), "register", elapsed())
@@ -425,7 +427,7 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     try:
         import gctr_cli.io  # noqa: F401 - load everything a pair needs before the first pair
 
-        register_fn = _resolve_ref(register_ref) if register_ref else _default_register()
+        register_fn = _resolve_ref(register_ref) if register_ref else _default_register(config)
     except BaseException as exc:  # noqa: BLE001
         startup_error = f"worker start-up failed: {_exc_message(exc)}"
     _limit_native_threads()
