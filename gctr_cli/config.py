@@ -34,8 +34,8 @@ class PreprocessConfig(_Strict):
 class SupervoxelConfig(_Strict):
     """VCCS-like supervoxels; their centroids are the salient points."""
 
-    voxel_ratio: float = Field(0.02, gt=0, lt=0.5, description="voxel size / cloud diameter")
-    seed_ratio: float = Field(0.12, gt=0, lt=1, description="seed spacing / cloud diameter")
+    voxel_ratio: float = Field(0.02, gt=0, lt=0.5, description="voxel size / robust cloud diameter")
+    seed_ratio: float = Field(0.12, gt=0, lt=1, description="seed spacing / robust cloud diameter")
     spatial_weight: float = Field(1.0, ge=0)
     normal_weight: float = Field(1.0, ge=0)
     iterations: int = Field(3, ge=1, le=20, description="seed refinement rounds")
@@ -46,9 +46,9 @@ class SupervoxelConfig(_Strict):
 class TripletConfig(_Strict):
     """Random wide-baseline triangles on the salient points."""
 
-    n_source: int = Field(2000, ge=10, description="source triangles per round")
-    n_target: int = Field(40000, ge=10, description="target triangles per round")
-    min_edge_ratio: float = Field(0.5, gt=0, le=1, description="edge >= ratio * overlap-region diameter")
+    n_source: int = Field(2000, ge=10, description="source triangles per pair")
+    n_target: int = Field(40000, ge=10, description="target triangles per pair")
+    min_edge_ratio: float = Field(0.5, gt=0, le=1, description="edges >= ratio * overlap-region diameter (sqrt(r))")
     min_angle_deg: float = Field(12.0, ge=0, lt=60, description="reject near-degenerate triangles")
 
 
@@ -59,7 +59,7 @@ class TensorConfig(_Strict):
     normal_weight: float = Field(1.0, ge=0, description="weight of the vertex-normal terms of the descriptor; 0 = angles only")
     sigma: float = Field(0.0, ge=0, description="descriptor bandwidth; 0 = mean kNN distance")
     first_order_weight: float = Field(1.0, ge=0, description="weight of the point-to-point term")
-    first_order_sigma: float = Field(0.05, gt=0, description="point term bandwidth / target diameter")
+    first_order_sigma: float = Field(0.05, gt=0, description="point-term bandwidth / robust diameter")
 
 
 class PowerIterationConfig(_Strict):
@@ -73,8 +73,8 @@ class RansacConfig(_Strict):
     random_samples: int = Field(1000, ge=0, description="extra hypotheses drawn from the soft assignment")
     verify_top: int = Field(300, ge=1, description="best hypotheses re-ranked by dense symmetric fitness")
     refine_fraction: float = Field(0.25, gt=0, le=1, description="share of hypotheses once a transform exists")
-    candidates: int = Field(3, ge=1, le=10, description="correspondences kept per source point")
-    inlier_ratio: float = Field(0.05, gt=0, lt=1, description="inlier threshold / target diameter")
+    candidates: int = Field(3, ge=1, le=10, description="targets per source point for the random samples")
+    inlier_ratio: float = Field(0.05, gt=0, lt=1, description="salient inlier distance / robust diameter")
     min_inliers: int = Field(6, ge=3, description="fewer inliers = too weak evidence: failed status")
 
 
@@ -84,13 +84,13 @@ class OuterLoopConfig(_Strict):
 
 
 class RefineConfig(_Strict):
-    """Trimmed scaled ICP on the (downsampled) full clouds after GCTR."""
+    """Dense refinement after GCTR: trimmed scaled ICP on the working clouds."""
 
     enabled: bool = True
     method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
     iterations: int = Field(30, ge=1, le=500)
-    start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / target diameter")
-    end_ratio: float = Field(0.02, gt=0, description="final trimming distance / target diameter")
+    start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / robust diameter")
+    end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")
 
 
 class EngineConfig(_Strict):
@@ -105,10 +105,10 @@ class EngineConfig(_Strict):
     outer: OuterLoopConfig = OuterLoopConfig()
     refine: RefineConfig = RefineConfig()
     overlap: Literal["auto"] | float = Field("auto", description="'auto' searches 0.25/0.5/0.75/1.0")
-    overlap_candidates: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0)
+    overlap_candidates: tuple[float, ...] = Field((0.25, 0.5, 0.75, 1.0), description="ratios tried by 'auto'")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
-    scale_bounds: tuple[float, float] = (0.1, 10.0)
-    inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / target diameter")
+    scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
+    inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
 
     @field_validator("overlap")

@@ -3,13 +3,26 @@
 ``register(source, target, config, seed)`` → :class:`RegistrationResult` with the similarity that
 maps the source onto the target, in the original coordinates of the inputs.
 
-Pipeline (paper, Algorithm 1): validate and normalise both clouds (robust centre, robust diameter
-1), downsample, supervoxel centroids as salient points; then for each candidate overlap ratio
-(``overlap: auto`` searches 0.25/0.5/0.75/1.0) an outer loop: wide-baseline triangles → sparse
-third-order tensor + first-order term under the current transform → power iteration → candidate
-correspondences → RANSAC similarity → closed-form refit — until the transform stops changing.
-The overlap whose result has the best robust fitness wins; an optional trimmed scaled ICP polishes
-it. All random draws come from generators seeded with ``seed``.
+Pipeline (paper, Algorithm 1):
+
+1. validate both clouds, normalise each (robust centre at the origin, robust diameter 1 — the
+   relative scale is unknown, so every length in the config is relative), voxel-downsample early;
+2. supervoxel centroids (VCCS-like) are the salient points;
+3. random wide-baseline triangles on both sides (drawn once per pair with the smallest overlap's
+   edge limit), described by the cosines of their inner angles (+ optional vertex-normal terms),
+   matched by k nearest neighbours in descriptor space into one sparse third-order tensor;
+4. for each candidate overlap ratio r (``overlap: auto`` searches 0.25/0.5/0.75/1.0) the tensor
+   entries whose triangles are wide enough for r are kept, and the outer loop runs: first-order
+   term under the current transform → tensor power iteration → RANSAC over minimal samples from
+   the best-supported triangle matches and the soft assignment → dense verification of the best
+   hypotheses → closed-form similarity (SVD; Umeyama or edge-ratio scale) — until the salient
+   points stop moving;
+5. the overlap whose result has the best symmetric fitness wins; an optional scaled ICP
+   (point-to-plane by default) polishes it on the working clouds;
+6. the transform is composed back into the original coordinates and checked (inliers, fitness,
+   scale bounds) — weak evidence gives ``status='failed'`` rather than a silently wrong matrix.
+
+All random draws come from generators spawned from ``seed``.
 """
 
 from __future__ import annotations
@@ -26,6 +39,7 @@ from gctr_cli.engine.descriptor import triangle_descriptors, with_ambiguous_perm
 from gctr_cli.engine.power_iteration import power_iteration
 from gctr_cli.engine.preprocess import (
     DegenerateCloudError,
+    NormalisedCloud,
     downsample_to,
     estimate_normals,
     normalise,
@@ -200,6 +214,19 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
     return _Candidate(transform=T, n_inliers=n_inliers, iterations=it, fit=fit, coverage=cov, overlap=overlap)
 
 
+def _to_original(T_n: np.ndarray, ns: NormalisedCloud, nt: NormalisedCloud) -> np.ndarray:
+    """Compose ``target = size_t * (T_n (source - c_s) / size_s) + c_t`` into one 4x4 matrix.
+
+    Written out instead of multiplying 4x4 matrices so that large coordinates (e.g. UTM offsets
+    of 1e6) keep full precision: the translation is ``c_t + size_t * t_n - A c_s``.
+    """
+    A = T_n[:3, :3] * (nt.size / ns.size)
+    T = np.eye(4)
+    T[:3, :3] = A
+    T[:3, 3] = nt.centre + nt.size * T_n[:3, 3] - A @ ns.centre
+    return T
+
+
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
             transform: np.ndarray | None = None) -> RegistrationResult:
     T = np.eye(4) if transform is None else transform
@@ -301,8 +328,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
             T_n, fit = T_r, fit_r
         timer.add("refine", t)
 
-    T = nt.to_original() @ T_n @ np.linalg.inv(ns.to_original())
-    T[3] = (0.0, 0.0, 0.0, 1.0)
+    T = _to_original(T_n, ns, nt)
     scale = float(np.linalg.det(T[:3, :3]) ** (1.0 / 3.0))
     rotation = T[:3, :3] / scale
     status, message = "ok", ""

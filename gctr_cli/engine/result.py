@@ -14,9 +14,10 @@ class RegistrationResult:
     ``transform`` is the 4x4 similarity ``[[s*R, t], [0, 0, 0, 1]]`` mapping source points onto the
     target (``target ~ transform @ [source; 1]``) in the original coordinates of the inputs.
 
-    ``fitness`` is the fraction of (downsampled) source points that, after the transform, have a
-    target point within the inlier distance (1% of the target diameter); ``inlier_rmse`` is the RMS
-    of those distances, in target units. ``status`` is ``"ok"`` or ``"failed"``; a failed result
+    ``fitness`` is the fraction of the (downsampled) source points that, after the transform, have a
+    target point within the inlier distance (``inlier_distance_ratio`` x the target's robust
+    diameter, 3% by default; robust diameter = twice the 90th percentile of the distances to the
+    median point); ``inlier_rmse`` is the RMS of those distances, in target units. ``status`` is ``"ok"`` or ``"failed"``; a failed result
     still carries the best transform found (or the identity) and a ``message`` saying why.
     """
 
