@@ -18,6 +18,16 @@ Guarantees (see the README, "what happens when..."):
   on the number of workers or on the order of completion.
 * **One writer per folder.** ``OUTDIR/.gctr.lock`` refuses a second concurrent batch on the same folder;
   a lock left by a killed process is detected as stale and taken over.
+
+Executors. The per-pair work (:func:`run_pair`) runs on an *executor*: a generator that takes the
+``(spec, seed)`` tasks and yields one :class:`PairOutcome` per task, in completion order, turning any
+fault of its workers into a failed outcome and cleaning up in ``finally``. ``"local"`` is the
+crash-proof process pool of this module (:func:`_pool_outcomes`, the default); ``"dask"`` runs the same
+tasks on a dask.distributed cluster (:mod:`gctr_cli.dask_executor`). :func:`run_batch` consumes either
+with the same code, so the output files, the commit order, ``resume`` and the lock do not depend on the
+executor. With ``snapshots=True`` the workers also render a PNG per pair (they have the clouds in
+memory) and return it in the outcome; the batch process writes it to ``OUTDIR/snapshots/`` before the
+pair's commit. Every batch ends by writing ``OUTDIR/report.html`` (:mod:`gctr_cli.report`).
 """
 
 from __future__ import annotations
@@ -54,6 +64,7 @@ __all__ = [
     "BatchError",
     "BatchSummary",
     "ERRORS_COLUMNS",
+    "EXECUTORS",
     "LOCK_NAME",
     "LockError",
     "OutdirLock",
@@ -77,8 +88,13 @@ ERRORS_COLUMNS = ("pair_id", "rot_err_deg", "trans_err", "trans_err_rel", "scale
 TRANSFORMS_FILE = "transforms.csv"
 ERRORS_FILE = "tm_errors.csv"
 MATRICES_DIR = "matrices"
+SNAPSHOTS_DIR = "snapshots"
+REPORT_FILE = "report.html"
 CONFIG_FILE = "config.yaml"
 LOCK_NAME = ".gctr.lock"
+
+#: executors :func:`run_batch` can run the pairs on
+EXECUTORS = ("local", "dask")
 
 #: environment variables that cap native thread pools; set to 1 in every worker before numpy loads
 THREAD_ENV_VARS = (
@@ -156,6 +172,8 @@ class PairOutcome:
     success: bool | None = None
     failure: str = ""
     warnings: tuple[str, ...] = ()
+    #: PNG bytes of the pair's snapshot (``run_pair(..., snapshot=True)``); written by the batch process
+    snapshot_png: bytes | None = field(default=None, repr=False, compare=False)
 
     @property
     def ok(self) -> bool:
@@ -219,12 +237,17 @@ def _exc_message(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+#: logger of snapshot problems: reported as batch warnings, never in the pair's message
+SNAPSHOT_LOGGER = "gctr_cli.snapshots"
+
+
 def run_pair(
     spec: Any,
     config: Config,
     register_fn: RegisterFn | None = None,
     *,
     seed: int | None = None,
+    snapshot: bool = False,
 ) -> PairOutcome:
     """Register one pair and return its outcome; never raises for a problem of the pair itself.
 
@@ -234,7 +257,29 @@ def run_pair(
     ``ground truth <file>: <problem>``; any exception during registration gives ``Type: message``.
     The target diagonal for the relative translation error is the bounding-box diagonal of the loaded
     target cloud.
+
+    ``snapshot=True`` also renders the pair's PNG snapshot (:mod:`gctr_cli.snapshots`; input only for
+    a failed pair, nothing when neither cloud could be loaded) into ``outcome.snapshot_png``, after the
+    clock of ``runtime_s`` stopped. A rendering problem is logged as a warning and never fails the pair.
     """
+    clouds: dict[str, np.ndarray] = {}
+    outcome = _run_pair(spec, config, register_fn, seed, clouds)
+    if snapshot and clouds:
+        try:
+            from dataclasses import replace
+
+            from gctr_cli.snapshots import snapshot_of_outcome
+
+            png = snapshot_of_outcome(outcome, clouds.get("source"), clouds.get("target"))
+            outcome = replace(outcome, snapshot_png=png)
+        except Exception as exc:  # noqa: BLE001 - a snapshot must never fail the pair
+            logging.getLogger(SNAPSHOT_LOGGER).warning("snapshot failed: %s", _exc_message(exc))
+    return outcome
+
+
+def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: int | None,
+              clouds: dict[str, np.ndarray]) -> PairOutcome:
+    """:func:`run_pair` without the snapshot; the loaded clouds are left in ``clouds``."""
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
     from gctr_cli.metrics import is_similarity, transform_errors
 
@@ -246,15 +291,14 @@ def run_pair(
         return time.perf_counter() - t0
 
     # 1. point clouds
-    clouds = []
-    for path in (spec.source, spec.target):
+    for role, path in (("source", spec.source), ("target", spec.target)):
         try:
-            clouds.append(load_point_cloud(path))
+            clouds[role] = load_point_cloud(path)
         except PointCloudError as exc:
             return _failed(spec, seed, str(exc), "input", elapsed())
         except Exception as exc:  # noqa: BLE001 - a loader bug must still name the file
             return _failed(spec, seed, f"{path}: {_exc_message(exc)}", "input", elapsed())
-    source, target = clouds
+    source, target = clouds["source"], clouds["target"]
 
     # 2. ground truth (checked before the expensive part)
     T_gt = None
@@ -300,7 +344,7 @@ def run_pair(
         errors = success = None
         if T_gt is not None:
             diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
-            errors = transform_errors(T, T_gt, diagonal)
+            errors = transform_errors(T, T_gt, diagonal, source_centre=source.mean(axis=0))
             s = config.success
             success = errors.success(s.rotation_deg, s.translation_rel, s.scale)
         return PairOutcome(
@@ -397,7 +441,8 @@ class _ListHandler(logging.Handler):
 STARTUP_GRACE_S = 120.0
 
 
-def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid: int) -> None:
+def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid: int,
+                 snapshots: bool = False) -> None:
     """Loop of one worker process.
 
     Receives ``(spec, seed)``; answers ``("start", None)`` when it begins the pair (the parent starts
@@ -427,6 +472,10 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     try:
         import gctr_cli.io  # noqa: F401 - load everything a pair needs before the first pair
 
+        if snapshots:
+            import gctr_cli.snapshots  # noqa: F401
+            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.figure  # noqa: F401
         register_fn = _resolve_ref(register_ref) if register_ref else _default_register(config)
     except BaseException as exc:  # noqa: BLE001
         startup_error = f"worker start-up failed: {_exc_message(exc)}"
@@ -447,7 +496,7 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
             if startup_error is not None:
                 outcome = _failed(spec, seed, startup_error, "worker", 0.0)
             else:
-                outcome = run_pair(spec, config, register_fn, seed=seed)
+                outcome = run_pair(spec, config, register_fn, seed=seed, snapshot=snapshots)
             if handler.records:
                 outcome = _with_warnings(outcome, handler.records)
             try:
@@ -466,7 +515,7 @@ def _with_warnings(outcome: PairOutcome, records: list[tuple[str, str]]) -> Pair
     """Attach warnings; gctr's own (e.g. "dropped 5 non-finite points") also go into the message."""
     from dataclasses import replace
 
-    ours = [msg for name, msg in records if name.startswith("gctr_cli")]
+    ours = [msg for name, msg in records if name.startswith("gctr_cli") and name != SNAPSHOT_LOGGER]
     message = "; ".join([m for m in [outcome.message] if m] + [f"warning: {m}" for m in ours])
     return replace(outcome, warnings=tuple(msg for _, msg in records), message=message)
 
@@ -490,11 +539,11 @@ def _single_thread_env() -> Iterator[None]:
 class _Worker:
     """One long-lived worker process, fed one pair at a time through a pipe."""
 
-    def __init__(self, ctx: Any, config: Config, register_ref: str | None) -> None:
+    def __init__(self, ctx: Any, config: Config, register_ref: str | None, snapshots: bool = False) -> None:
         self.conn, child_conn = ctx.Pipe(duplex=True)
         self.process = ctx.Process(
             target=_worker_main,
-            args=(child_conn, config, register_ref, os.getpid()),
+            args=(child_conn, config, register_ref, os.getpid(), snapshots),
             name="gctr-worker",
             daemon=True,
         )
@@ -552,6 +601,8 @@ def _pool_outcomes(
     n_workers: int,
     register_ref: str | None,
     time_limit_s: float,
+    *,
+    snapshots: bool = False,
 ) -> Iterator[PairOutcome]:
     """Run ``(spec, seed)`` tasks on ``n_workers`` processes; yield outcomes in completion order.
 
@@ -580,7 +631,7 @@ def _pool_outcomes(
                 if idle is None:
                     if len(workers) >= n_workers:
                         break
-                    idle = _Worker(ctx, config, register_ref)
+                    idle = _Worker(ctx, config, register_ref, snapshots)
                     workers.append(idle)
                 spec, seed = pending.popleft()
                 try:
@@ -1066,6 +1117,84 @@ def _prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
     return done
 
 
+def _check_executor(executor: str, scheduler: str | None) -> None:
+    if executor not in EXECUTORS:
+        raise BatchError(f"unknown executor {executor!r} (choose one of: {', '.join(EXECUTORS)})")
+    if scheduler is not None and executor != "dask":
+        raise BatchError("a scheduler address needs the dask executor (--executor dask)")
+    if executor == "dask":
+        from gctr_cli.dask_executor import check_available
+
+        check_available()
+
+
+def _outcomes(executor: str, tasks: Sequence[tuple[Any, int]], config: Config, n_workers: int,
+              register_ref: str | None, *, scheduler: str | None, snapshots: bool) -> Iterator[PairOutcome]:
+    """The outcomes of ``tasks`` from the chosen executor (see the module docstring)."""
+    time_limit_s = config.batch.time_limit_s
+    if executor == "dask":
+        from gctr_cli.dask_executor import dask_outcomes
+
+        return dask_outcomes(tasks, config, n_workers, register_ref, time_limit_s, scheduler=scheduler,
+                             snapshots=snapshots)
+    return _pool_outcomes(tasks, config, n_workers, register_ref, time_limit_s, snapshots=snapshots)
+
+
+class _Outputs:
+    """The output files of a running batch; :meth:`commit` records one finished pair.
+
+    Order per pair: matrix file, snapshot, ``tm_errors.csv`` row, then the ``transforms.csv`` row (the
+    commit). A kill between two steps leaves files that ``resume`` repairs or overwrites.
+    """
+
+    def __init__(self, outdir: Path) -> None:
+        self.outdir = outdir
+        self.transforms = _RowLog(outdir / TRANSFORMS_FILE, TRANSFORMS_COLUMNS)
+        try:
+            self.errors = _RowLog(outdir / ERRORS_FILE, ERRORS_COLUMNS)
+        except BaseException:
+            self.transforms.close()
+            raise
+        _fsync_dir(outdir)
+
+    def commit(self, outcome: PairOutcome) -> None:
+        from gctr_cli.io import write_matrix
+
+        for w in outcome.warnings:
+            logger.warning("pair %s: %s", outcome.pair_id, w)  # gctr's own are in the message too
+        if outcome.transform is not None:
+            write_matrix(self.outdir / MATRICES_DIR / f"{outcome.pair_id}.txt", outcome.transform)
+        if outcome.snapshot_png is not None:
+            try:
+                from gctr_cli.snapshots import write_png
+
+                write_png(self.outdir / SNAPSHOTS_DIR / f"{outcome.pair_id}.png", outcome.snapshot_png)
+            except OSError as exc:
+                logger.warning("pair %s: cannot write its snapshot: %s", outcome.pair_id, exc)
+        row = outcome.errors_row
+        if row is not None:
+            self.errors.append(row)
+        self.transforms.append(outcome.transforms_row)  # the commit
+        if not outcome.ok:
+            level = logging.WARNING if outcome.failure in ("worker", "timeout") else logging.INFO
+            logger.log(level, "pair %s failed: %s", outcome.pair_id, outcome.message)
+
+    def close(self) -> None:
+        self.transforms.close()
+        self.errors.close()
+
+
+def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> None:
+    """``OUTDIR/report.html``; a problem is logged, never fails the batch."""
+    try:
+        from gctr_cli.report import write_report
+
+        write_report(outdir, summary=summary, config=config)
+    except Exception as exc:  # noqa: BLE001
+        logger.warning("could not write %s: %s", outdir / REPORT_FILE, _exc_message(exc))
+        logger.debug("report failure", exc_info=True)
+
+
 def run_batch(
     pairs: Sequence[Any],
     config: Config,
@@ -1076,20 +1205,28 @@ def run_batch(
     register_fn: RegisterFn | str | None = None,
     on_outcome: Callable[[PairOutcome], None] | None = None,
     on_start: Callable[[int, int], None] | None = None,
+    executor: str = "local",
+    scheduler: str | None = None,
+    snapshots: bool = False,
 ) -> BatchSummary:
     """Register every pair of ``pairs`` (a manifest) and stream the outputs into ``outdir``.
 
-    ``workers``: processes (``None``: ``config.batch.workers``; 0: one per core). ``resume``: skip
-    pairs already in ``transforms.csv``; without it an existing non-empty ``transforms.csv`` raises
+    ``workers``: processes (``None``: ``config.batch.workers``; 0: one per core); with the dask
+    executor and no ``scheduler``, the number of workers of the LocalCluster it starts. ``resume``:
+    skip pairs already in ``transforms.csv``; without it an existing non-empty ``transforms.csv`` raises
     :class:`BatchError`. ``register_fn``: a module-level function (or ``"module:name"``) with the
     signature of :func:`gctr_cli.engine.register`; default: the GCTR engine. ``on_start(n_todo,
     n_done)`` is called once before the first pair, ``on_outcome`` after each pair is written (e.g.
-    to advance a progress bar). Raises :class:`BatchError` (nothing run) when the output folder is in
-    use or inconsistent.
+    to advance a progress bar). ``executor``: ``"local"`` (process pool) or ``"dask"``
+    (``scheduler``: address of a running dask scheduler; ``None`` starts a LocalCluster).
+    ``snapshots``: also write ``OUTDIR/snapshots/<pair_id>.png``. At the end ``OUTDIR/report.html``
+    is written (all rows of ``transforms.csv``, including resumed ones). Raises :class:`BatchError`
+    (nothing run) when the output folder is in use or inconsistent, or the executor cannot start.
     """
     t0 = time.monotonic()
     outdir = Path(outdir)
     _check_pair_ids(pairs)
+    _check_executor(executor, scheduler)
     register_ref = _register_ref(register_fn)
     n_workers = resolve_workers(workers, config)
     try:
@@ -1097,43 +1234,33 @@ def run_batch(
     except OSError as exc:
         raise BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
 
-    from gctr_cli.io import write_matrix
-
     with OutdirLock(outdir):
         done = _prepare_outdir(outdir, config, resume)
         todo = [p for p in pairs if p.pair_id not in done]
         n_resumed = len(pairs) - len(todo)
         resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
         _atomic_write_text(outdir / CONFIG_FILE, config_to_yaml(resolved))
+        if snapshots:
+            (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
         if n_resumed:
             logger.info("resuming: %d of %d pairs already done", n_resumed, len(pairs))
         if on_start is not None:
             on_start(len(todo), n_resumed)
 
         tasks = [(p, derive_seed(config.seed, p.pair_id)) for p in todo]
-        transforms_log = _RowLog(outdir / TRANSFORMS_FILE, TRANSFORMS_COLUMNS)
-        errors_log = _RowLog(outdir / ERRORS_FILE, ERRORS_COLUMNS)
-        _fsync_dir(outdir)
+        outputs = _Outputs(outdir)
         n_run = 0
         try:
             if tasks:
-                for outcome in _pool_outcomes(tasks, config, n_workers, register_ref, config.batch.time_limit_s):
-                    for w in outcome.warnings:
-                        logger.warning("pair %s: %s", outcome.pair_id, w)  # gctr's own are in the message too
-                    if outcome.transform is not None:
-                        write_matrix(outdir / MATRICES_DIR / f"{outcome.pair_id}.txt", outcome.transform)
-                    row = outcome.errors_row
-                    if row is not None:
-                        errors_log.append(row)
-                    transforms_log.append(outcome.transforms_row)  # the commit
+                for outcome in _outcomes(executor, tasks, config, n_workers, register_ref, scheduler=scheduler,
+                                         snapshots=snapshots):
+                    outputs.commit(outcome)
                     n_run += 1
-                    if not outcome.ok:
-                        level = logging.WARNING if outcome.failure in ("worker", "timeout") else logging.INFO
-                        logger.log(level, "pair %s failed: %s", outcome.pair_id, outcome.message)
                     if on_outcome is not None:
                         on_outcome(outcome)
         finally:
-            transforms_log.close()
-            errors_log.close()
+            outputs.close()
 
-        return summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
+        summary = summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
+        _write_report(outdir, summary, config)
+        return summary

@@ -28,7 +28,7 @@ class PreprocessConfig(_Strict):
     """Early downsampling: clouds are reduced to a working size before anything quadratic."""
 
     max_points: int = Field(6000, ge=100, description="working size of each cloud (voxel downsampling)")
-    normal_neighbours: int = Field(16, ge=5, le=100, description="k of the kNN used for PCA normals")
+    normal_neighbours: int = Field(30, ge=5, le=100, description="k of the kNN used for PCA normals")
 
 
 class SupervoxelConfig(_Strict):
@@ -133,6 +133,71 @@ class EngineConfig(_Strict):
         return value
 
 
+class FeatureConfig(_Strict):
+    """Voxel downsampling, normals and FPFH features of fpfh_ransac and fgr (Open3D's tutorial recipe)."""
+
+    voxel_ratio: float = Field(0.02, gt=0, lt=0.5, description="voxel size / bbox diagonal (after normalisation)")
+    normal_radius_factor: float = Field(2.0, gt=0, description="normal estimation radius / voxel size")
+    normal_max_nn: int = Field(30, ge=3, description="max neighbours for normal estimation")
+    feature_radius_factor: float = Field(5.0, gt=0, description="FPFH radius / voxel size")
+    feature_max_nn: int = Field(100, ge=3, description="max neighbours for FPFH")
+
+
+class BaselineRansacConfig(_Strict):
+    """Open3D registration_ransac_based_on_feature_matching (fpfh_ransac)."""
+
+    max_iterations: int = Field(100000, ge=1, description="RANSAC hypotheses at most")
+    confidence: float = Field(0.999, gt=0, lt=1, description="early stop confidence")
+    distance_factor: float = Field(1.5, gt=0, description="inlier distance / voxel size (also the distance checker)")
+    edge_length_ratio: float = Field(0.9, gt=0, lt=1, description="edge-length checker similarity threshold")
+    ransac_n: int = Field(3, ge=3, le=10, description="correspondences per hypothesis")
+    with_scaling: bool = Field(True, description="estimate a scale in each hypothesis (normalisation is approximate)")
+
+
+class BaselineFgrConfig(_Strict):
+    """Open3D registration_fgr_based_on_feature_matching (fgr)."""
+
+    distance_factor: float = Field(0.5, gt=0, description="maximum correspondence distance / voxel size")
+    iterations: int = Field(64, ge=1, description="FGR graduated non-convexity iterations")
+    tuple_scale: float = Field(0.95, gt=0, lt=1, description="tuple test similarity threshold")
+    max_tuples: int = Field(1000, ge=1, description="maximum tuple count")
+
+
+class BaselineIcpConfig(_Strict):
+    """Open3D point-to-point ICP with scale estimation: the icp method, and the refinement of fpfh_ransac/fgr."""
+
+    voxel_ratio: float = Field(0.01, ge=0, lt=0.5, description="voxel size / bbox diagonal; 0 = all points")
+    iterations: int = Field(100, ge=1, le=10000, description="maximum ICP iterations")
+    threshold_ratio: float = Field(0.05, gt=0, description="icp method: max correspondence distance / bbox diagonal")
+    refine_threshold_ratio: float = Field(0.02, gt=0, description="refinement after fpfh_ransac/fgr: same, / bbox diagonal")
+
+
+class BaselineCpdConfig(_Strict):
+    """Rigid Coherent Point Drift with scale (Myronenko & Song 2010), numpy."""
+
+    w: float = Field(0.1, ge=0, lt=1, description="weight of the uniform outlier component")
+    max_points: int = Field(1500, ge=10, le=20000, description="random subsample of each cloud (memory ~ n^2)")
+    max_iterations: int = Field(150, ge=1, le=10000, description="EM iterations at most")
+    tol: float = Field(1e-6, gt=0, description="stop when the relative change of the EM objective is below")
+
+
+class BaselineConfig(_Strict):
+    """Comparison methods (method: icp | fpfh_ransac | fgr | cpd). Each removes outliers, aligns the centroids
+    and scales the source by the ratio of bounding-box diagonals (the paper's protocol for comparison methods)."""
+
+    features: FeatureConfig = FeatureConfig()
+    ransac: BaselineRansacConfig = BaselineRansacConfig()
+    fgr: BaselineFgrConfig = BaselineFgrConfig()
+    icp: BaselineIcpConfig = BaselineIcpConfig()
+    cpd: BaselineCpdConfig = BaselineCpdConfig()
+    outlier_removal: Literal["statistical", "none"] = Field(
+        "statistical", description="clean both clouds first (Open3D remove_statistical_outlier)")
+    outlier_neighbours: int = Field(20, ge=2, description="statistical outlier removal: neighbours")
+    outlier_std_ratio: float = Field(2.0, gt=0, description="statistical outlier removal: std ratio")
+    inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / target bbox diagonal")
+    min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
+
+
 class SuccessConfig(_Strict):
     """Thresholds that decide the `success` column of tm_errors.csv."""
 
@@ -150,8 +215,10 @@ class Config(_Strict):
     """The whole configuration file."""
 
     seed: int = Field(0, ge=0, description="base seed; each pair's seed derives from it and the pair id")
-    method: Literal["gctr"] = "gctr"
+    method: Literal["gctr", "icp", "fpfh_ransac", "fgr", "cpd"] = Field(
+        "gctr", description="gctr, or a comparison method configured in the baselines section")
     engine: EngineConfig = EngineConfig()
+    baselines: BaselineConfig = BaselineConfig()
     success: SuccessConfig = SuccessConfig()
     batch: BatchConfig = BatchConfig()
 

@@ -66,16 +66,22 @@ class TransformErrors:
         )
 
 
-def transform_errors(T_est: np.ndarray, T_gt: np.ndarray, target_diagonal: float) -> TransformErrors:
+def transform_errors(T_est: np.ndarray, T_gt: np.ndarray, target_diagonal: float,
+                     source_centre: np.ndarray | None = None) -> TransformErrors:
     """Compare two source->target similarities.
 
-    rotation: geodesic angle between the rotation parts; translation: ``||t_est - t_gt||``, absolute
-    and relative to the target's bounding-box diagonal; scale: ``|s_est/s_gt - 1|``;
-    TM: ``||T_est - T_gt||_F`` (the paper's TM error).
+    rotation: geodesic angle between the rotation parts; translation: the distance between where
+    the two transforms put ``source_centre`` (the source cloud's centroid; the coordinate origin if
+    not given, which makes it ``||t_est - t_gt||``), absolute and relative to the target's
+    bounding-box diagonal — measured at the cloud, so a UTM-like offset of the coordinates does not
+    turn a tiny rotation error into a huge translation error; scale: ``|s_est/s_gt - 1|``;
+    TM: ``||T_est - T_gt||_F`` (the paper's TM error, which does depend on the origin).
     """
     s_e, R_e, t_e = decompose_similarity(T_est)
     s_g, R_g, t_g = decompose_similarity(T_gt)
-    trans = float(np.linalg.norm(t_e - t_g))
+    c = np.zeros(3) if source_centre is None else np.asarray(source_centre, dtype=float)
+    # Written as (s R c + t) differences so large coordinates cancel as early as possible.
+    trans = float(np.linalg.norm((t_e - t_g) + (s_e * R_e - s_g * R_g) @ c))
     return TransformErrors(
         rot_err_deg=rotation_angle_deg(R_e.T @ R_g),
         trans_err=trans,

@@ -158,8 +158,9 @@ def test_batch_outputs_follow_the_contract(four_pairs, fast_config, tmp_path):
         assert float(row["runtime_s"]) >= 0
         if pid in four_pairs.gt:
             target = load_point_cloud(specs[pid].target)
+            source = load_point_cloud(specs[pid].source)
             diag = float(np.linalg.norm(target.max(0) - target.min(0)))
-            e = transform_errors(T_file, four_pairs.gt[pid], diag)
+            e = transform_errors(T_file, four_pairs.gt[pid], diag, source_centre=source.mean(axis=0))
             er = erows[pid]
             assert float(er["rot_err_deg"]) == pytest.approx(e.rot_err_deg, abs=1e-9)
             assert float(er["trans_err"]) == pytest.approx(e.trans_err, rel=1e-9)

@@ -322,10 +322,13 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         else:
             T_r, _ = trimmed_scaled_icp(src.points, tgt.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
                                         bounds_n, tgt.tree)
-        fit_r = evaluate_fit(src.points, tgt.tree, T_r, cfg.inlier_distance_ratio)
-        # Keep the refinement unless it clearly loses robust fitness (a drift, not a polish).
-        if fit_r.fitness >= 0.97 * fit.fitness:
-            T_n, fit = T_r, fit_r
+        # Keep the refinement unless it loses robust fitness at a tight distance (half the inlier
+        # distance), which rewards precision and exposes a drift.
+        tight = 0.5 * cfg.inlier_distance_ratio
+        before = evaluate_fit(src.points, tgt.tree, T_n, tight).fitness
+        after = evaluate_fit(src.points, tgt.tree, T_r, tight).fitness
+        if after >= 0.97 * before:
+            T_n, fit = T_r, evaluate_fit(src.points, tgt.tree, T_r, cfg.inlier_distance_ratio)
         timer.add("refine", t)
 
     T = _to_original(T_n, ns, nt)

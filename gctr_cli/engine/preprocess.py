@@ -60,12 +60,15 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
 
 
 def robust_centre_and_size(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Median centre and a robust diameter (twice the 90th percentile of distances to the centre).
+    """Robust centre and diameter: the mean of the 80% of points nearest the coordinate-wise median
+    (nearly rotation-equivariant, unlike the median itself), and twice the 90th percentile of the
+    distances to that centre.
 
-    Unlike the bounding-box diagonal this barely moves under rotation, moderate crops and a few
-    outliers.
+    Unlike the bounding-box diagonal this barely moves under rotation, moderate crops and outliers.
     """
-    centre = np.median(points, axis=0)
+    median = np.median(points, axis=0)
+    r0 = np.linalg.norm(points - median, axis=1)
+    centre = points[r0 <= np.percentile(r0, 80)].mean(axis=0)
     r = np.linalg.norm(points - centre, axis=1)
     size = 2.0 * float(np.percentile(r, 90))
     if size <= 0:

@@ -50,16 +50,18 @@ def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spaci
 
 
 def _initial_seeds(voxels: np.ndarray, seed_spacing: float, voxel: float) -> np.ndarray:
-    """One seed per occupied seed-grid cell: the voxel closest to the cell centre, kept only if it
-    has enough voxel neighbours (seeds in isolated, outlier regions are dropped as in VCCS)."""
-    cells = np.floor(voxels / seed_spacing).astype(np.int64)
-    centre = (cells + 0.5) * seed_spacing
-    dist = np.linalg.norm(voxels - centre, axis=1)
+    """One seed per occupied seed-grid cell: among the voxels with enough neighbours (seeds in
+    isolated, outlier regions are not allowed, as in VCCS), the one closest to the cell centre."""
+    counts = cKDTree(voxels).query_ball_point(voxels, r=2.0 * voxel, return_length=True)
+    eligible = np.flatnonzero(counts >= 4)
+    if len(eligible) == 0:
+        return eligible
+    pts = voxels[eligible]
+    cells = np.floor(pts / seed_spacing).astype(np.int64)
+    dist = np.linalg.norm(pts - (cells + 0.5) * seed_spacing, axis=1)
     _, cell_ids = np.unique(cells, axis=0, return_inverse=True)
     _, seeds = _group_argmin(cell_ids.ravel(), dist)
-    tree = cKDTree(voxels)
-    counts = np.array([len(n) for n in tree.query_ball_point(voxels[seeds], r=2.0 * voxel)])
-    return seeds[counts >= 4]
+    return eligible[seeds]
 
 
 def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spacing: float,
@@ -88,7 +90,8 @@ def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spac
         # Move each seed to the voxel nearest its cluster mean.
         lab = labels[reached]
         cnt = np.bincount(lab, minlength=len(seeds)).astype(float)
-        means = np.stack([np.bincount(lab, weights=points[reached, d], minlength=len(seeds)) for d in range(3)], 1)
+        means = np.stack([np.bincount(lab, weights=points[reached, d], minlength=len(seeds)).astype(float)
+                          for d in range(3)], 1)
         means /= np.maximum(cnt, 1)[:, None]
         members = np.flatnonzero(reached)
         d_to_mean = np.linalg.norm(points[members] - means[lab], axis=1)
@@ -104,11 +107,13 @@ def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spac
     final[valid] = remap[lab]
     ok = final >= 0
     cnt = np.bincount(final[ok], minlength=len(keep)).astype(float)
-    centroids = np.stack([np.bincount(final[ok], weights=points[ok, d], minlength=len(keep)) for d in range(3)], 1)
+    centroids = np.stack([np.bincount(final[ok], weights=points[ok, d], minlength=len(keep)).astype(float)
+                          for d in range(3)], 1)
     centroids /= np.maximum(cnt, 1)[:, None]
     # Orient normals consistently within a cluster (sign-agnostic mean via the first member's sign).
     ref = normals[ok]
     sgn = np.sign(np.einsum("ij,ij->i", ref, np.ones_like(ref)) + 1e-12)
-    nsum = np.stack([np.bincount(final[ok], weights=ref[:, d] * sgn, minlength=len(keep)) for d in range(3)], 1)
+    nsum = np.stack([np.bincount(final[ok], weights=ref[:, d] * sgn, minlength=len(keep)).astype(float)
+                     for d in range(3)], 1)
     nsum /= np.maximum(np.linalg.norm(nsum, axis=1, keepdims=True), 1e-12)
     return Supervoxels(centroids=centroids, normals=nsum, labels=final, sizes=cnt.astype(int))

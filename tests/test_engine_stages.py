@@ -1,0 +1,615 @@
+"""Unit tests of the GCTR engine stages, each through its public function signature.
+
+Every test is seeded and asserts numbers: invariances to ~1e-10, recovered correspondences,
+closed-form exactness, RANSAC inliers under 50% outliers, supervoxel statistics on the shipped
+bunny, preprocessing errors and the ICP refinement's convergence basin.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from gctr_cli.config import EngineConfig
+from gctr_cli.engine.descriptor import (
+    canonical_order,
+    inner_angle_cosines,
+    triangle_descriptors,
+    with_ambiguous_permutations,
+)
+from gctr_cli.engine.power_iteration import power_iteration
+from gctr_cli.engine.preprocess import (
+    DegenerateCloudError,
+    downsample_to,
+    estimate_normals,
+    normalise,
+    robust_centre_and_size,
+    validate_cloud,
+)
+from gctr_cli.engine.ransac import OccupancyGrid, ransac_hypotheses, refit
+from gctr_cli.engine.refine import scaled_point_to_plane_icp
+from gctr_cli.engine.similarity import (
+    apply,
+    batched_umeyama,
+    best_similarity,
+    edge_ratio_scale,
+    to_matrix,
+    umeyama,
+)
+from gctr_cli.engine.supervoxel import supervoxels
+from gctr_cli.engine.tensor import build_first_order, build_third_order
+from gctr_cli.engine.triplets import sample_triangles
+from gctr_cli.io import load_point_cloud
+from gctr_cli.metrics import rotation_angle_deg, transform_errors
+
+MODELS = Path(__file__).resolve().parent.parent / "data" / "models"
+
+
+# ----------------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------------
+
+
+def random_similarity(rng: np.random.Generator, scale_range=(0.3, 3.0)) -> tuple[float, np.ndarray, np.ndarray]:
+    s = float(rng.uniform(*scale_range))
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = rng.normal(scale=5.0, size=3)
+    return s, R, t
+
+
+def rot_err_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    return rotation_angle_deg(R_est.T @ R_true)
+
+
+@functools.lru_cache(maxsize=None)
+def _bunny() -> np.ndarray:
+    return load_point_cloud(MODELS / "bunny.ply")
+
+
+def bunny() -> np.ndarray:
+    return _bunny().copy()
+
+
+def bunny_working(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The bunny as the engine sees it: normalised, voxel-downsampled (default config), normals."""
+    cfg = EngineConfig()
+    work = downsample_to(normalise(bunny()).points, cfg.supervoxel.voxel_ratio, cfg.preprocess.max_points,
+                         np.random.default_rng(seed))
+    return work, estimate_normals(work, cfg.preprocess.normal_neighbours)
+
+
+def default_supervoxels(points: np.ndarray, normals: np.ndarray):
+    sv = EngineConfig().supervoxel
+    return supervoxels(points, normals, voxel=sv.voxel_ratio, seed_spacing=sv.seed_ratio,
+                       spatial_weight=sv.spatial_weight, normal_weight=sv.normal_weight,
+                       iterations=sv.iterations, min_voxels=sv.min_voxels)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 1. descriptor invariance
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_descriptors_invariant_under_similarity(seed):
+    rng = np.random.default_rng(seed)
+    P = rng.normal(size=(50, 3))
+    N = rng.normal(size=(50, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    tri = np.array([rng.choice(50, 3, replace=False) for _ in range(300)])
+    s, R, t = random_similarity(rng)
+    P2 = s * P @ R.T + t
+    N2 = N @ R.T  # normals rotate only
+
+    cos1, cos2 = inner_angle_cosines(P, tri), inner_angle_cosines(P2, tri)
+    assert cos1.shape == (300, 3)
+    np.testing.assert_allclose(cos2, cos1, atol=1e-10, rtol=0)
+    # the three inner angles of a triangle sum to 180 degrees
+    np.testing.assert_allclose(np.degrees(np.arccos(np.clip(cos1, -1, 1))).sum(axis=1), 180.0, atol=1e-8)
+
+    f1 = triangle_descriptors(P, N, tri, normal_weight=1.0)
+    f2 = triangle_descriptors(P2, N2, tri, normal_weight=1.0)
+    assert f1.shape == (300, 6)
+    np.testing.assert_allclose(f2, f1, atol=1e-10, rtol=0)
+    assert np.all((f1[:, 3:] >= 0) & (f1[:, 3:] <= 1 + 1e-12))
+    # weight 0 (the paper's pure angle descriptor) is just the cosines
+    np.testing.assert_array_equal(triangle_descriptors(P, N, tri, normal_weight=0.0), cos1)
+    # the normal weight scales the normal part only
+    f3 = triangle_descriptors(P, N, tri, normal_weight=2.5)
+    np.testing.assert_allclose(f3[:, :3], f1[:, :3], atol=0)
+    np.testing.assert_allclose(f3[:, 3:], 2.5 * f1[:, 3:], atol=1e-12)
+
+    # canonical order: same vertex correspondence on the transformed copy (no near-ties here)
+    gaps = np.diff(np.sort(cos1, axis=1), axis=1)
+    clear = gaps.min(axis=1) > 1e-6
+    assert clear.sum() > 250
+    c1, c2 = canonical_order(P, tri[clear]), canonical_order(P2, tri[clear])
+    np.testing.assert_array_equal(c1, c2)
+    # ... and it is the order of ascending cosines (largest angle first), a permutation of each triangle
+    assert np.all(np.diff(inner_angle_cosines(P, c1), axis=1) >= 0)
+    np.testing.assert_array_equal(np.sort(c1, axis=1), np.sort(tri[clear], axis=1))
+
+
+def test_ambiguous_permutations_only_for_near_equal_angles():
+    P = np.array([
+        [0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [1.0, 3.0, 0.0],  # isoceles, apex angle smallest (base angles first)
+        [10.0, 0.0, 0.0], [12.0, 0.0, 0.0], [11.0, 0.5, 0.0],  # isoceles, obtuse apex (base angles last)
+        [20.0, 0.0, 0.0], [24.0, 0.0, 0.0], [21.0, 2.0, 0.0],  # scalene
+        [30.0, 0.0, 0.0], [32.0, 0.0, 0.0], [31.0, np.sqrt(3.0), 0.0],  # equilateral
+    ])
+    acute_iso = canonical_order(P, np.array([[2, 0, 1]]))
+    assert set(acute_iso[0, :2]) == {0, 1} and acute_iso[0, 2] == 2
+    out = with_ambiguous_permutations(P, acute_iso)
+    np.testing.assert_array_equal(out, [acute_iso[0], acute_iso[0, [1, 0, 2]]])
+
+    obtuse_iso = canonical_order(P, np.array([[3, 4, 5]]))
+    assert obtuse_iso[0, 0] == 5
+    out = with_ambiguous_permutations(P, obtuse_iso)
+    np.testing.assert_array_equal(out, [obtuse_iso[0], obtuse_iso[0, [0, 2, 1]]])
+
+    scalene = canonical_order(P, np.array([[6, 7, 8]]))
+    cos = np.sort(inner_angle_cosines(P, scalene)[0])
+    assert np.diff(cos).min() > 0.08  # clearly distinct angles
+    np.testing.assert_array_equal(with_ambiguous_permutations(P, scalene), scalene)
+
+    equi = canonical_order(P, np.array([[9, 10, 11]]))
+    out = with_ambiguous_permutations(P, equi)
+    assert len(out) == 6
+    assert {tuple(r) for r in out} == set(itertools.permutations([9, 10, 11]))
+
+    # a batch: the scalene triangle gets nothing, the isoceles ones one swap each
+    batch = np.vstack([scalene, acute_iso, obtuse_iso])
+    out = with_ambiguous_permutations(P, batch)
+    assert len(out) == 5
+    np.testing.assert_array_equal(out[:3], batch)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 2. triplets
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_sample_triangles_constraints_and_determinism():
+    pts = np.random.default_rng(3).uniform(-1, 1, size=(80, 3))
+    min_edge, min_angle = 0.6, 15.0
+    tri = sample_triangles(pts, 400, min_edge, np.random.default_rng(11), min_angle_deg=min_angle)
+    assert tri.shape == (400, 3) and tri.dtype.kind == "i"
+    assert np.all((tri >= 0) & (tri < len(pts)))
+    # three distinct vertices, no triangle twice (as a vertex set)
+    assert np.all(np.sort(tri, axis=1)[:, 1:] != np.sort(tri, axis=1)[:, :-1])
+    assert len({tuple(sorted(r)) for r in tri.tolist()}) == len(tri)
+    p = pts[tri]
+    edges = np.linalg.norm(p[:, [1, 2, 0]] - p, axis=2)
+    assert edges.min() >= min_edge
+    cos = inner_angle_cosines(pts, tri)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).min() >= min_angle - 1e-9
+    # vertices in canonical order
+    assert np.all(np.diff(cos, axis=1) >= 0)
+
+    again = sample_triangles(pts, 400, min_edge, np.random.default_rng(11), min_angle_deg=min_angle)
+    np.testing.assert_array_equal(tri, again)
+    other = sample_triangles(pts, 400, min_edge, np.random.default_rng(12), min_angle_deg=min_angle)
+    assert not np.array_equal(tri, other)
+
+
+def test_sample_triangles_impossible_constraints():
+    pts = np.random.default_rng(4).uniform(0, 1, size=(30, 3))
+    # no edge can be longer than the cube's diagonal
+    assert sample_triangles(pts, 50, 2.0, np.random.default_rng(0)).shape == (0, 3)
+    assert sample_triangles(pts[:2], 50, 0.0, np.random.default_rng(0)).shape == (0, 3)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 3. power iteration recovers planted correspondences
+# ----------------------------------------------------------------------------------------------------
+
+
+def _planted_problem(seed: int, n: int = 30, n_extra: int = 10, noise: float = 0.003):
+    rng = np.random.default_rng(seed)
+    S = rng.normal(size=(n, 3))
+    s, R, t = random_similarity(rng, (0.5, 2.0))
+    moved = s * S @ R.T + t
+    distract = s * rng.normal(size=(n_extra, 3)) @ R.T + t
+    allq = np.vstack([moved + rng.normal(scale=noise * s, size=moved.shape), distract])
+    perm = rng.permutation(n + n_extra)  # source i <-> target perm[i]
+    Q = np.empty_like(allq)
+    Q[perm] = allq
+    return rng, S, Q, perm[:n], (s, R, t)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_power_iteration_recovers_planted_permutation(seed):
+    rng, S, Q, truth, (s, R, t) = _planted_problem(seed)
+    n1, n2 = len(S), len(Q)
+    src_tri = sample_triangles(S, 300, 0.5, rng, min_angle_deg=12.0)
+    assert len(src_tri) == 300
+    tgt_tri = canonical_order(Q, np.array(list(itertools.combinations(range(n2), 3))))
+    tgt_tri = with_ambiguous_permutations(Q, tgt_tri)
+    H3 = build_third_order(n1, src_tri, triangle_descriptors(S, None, src_tri), n2, tgt_tri,
+                           triangle_descriptors(Q, None, tgt_tri), knn=10)
+    assert H3.n1 == n1 and H3.n2 == n2 and len(H3.values) == 300 * 10
+    assert np.all((H3.values > 0) & (H3.values <= 1))
+
+    X, it = power_iteration(H3)
+    assert X.shape == (n1, n2) and 1 <= it <= 40
+    assert np.linalg.norm(X) == pytest.approx(1.0)
+    acc = float(np.mean(X.argmax(axis=1) == truth))
+    assert acc >= 0.9, acc
+
+    # with the first-order term under the true transform
+    H1 = build_first_order(s * S @ R.T + t, Q, sigma=0.1 * s)
+    assert len(H1.index) >= n1
+    X1, _ = power_iteration(H3, H1, first_order_weight=1.0)
+    acc1 = float(np.mean(X1.argmax(axis=1) == truth))
+    assert acc1 >= 0.95, acc1
+
+
+def test_first_order_term_alone_and_sparsity():
+    rng, S, Q, truth, (s, R, t) = _planted_problem(5, noise=0.0)
+    H1 = build_first_order(s * S @ R.T + t, Q, sigma=0.01 * s, radius_factor=3.0)
+    i, j = H1.index // len(Q), H1.index % len(Q)
+    # the true pairs are at distance 0 → value 1
+    true_entries = j == truth[i]
+    assert true_entries.sum() == len(S)
+    np.testing.assert_allclose(H1.values[true_entries], 1.0)
+    # everything stored is within the radius: exp(-(d/sigma)^2) >= exp(-9)
+    assert H1.values.min() >= np.exp(-9.0) - 1e-15
+    # an empty tensor with the first-order term alone still recovers the assignment
+    empty = build_third_order(len(S), np.empty((0, 3), int), np.empty((0, 3)), len(Q), np.empty((0, 3), int),
+                              np.empty((0, 3)), knn=5)
+    X, _ = power_iteration(empty, H1)
+    np.testing.assert_array_equal(X.argmax(axis=1), truth)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 4. closed-form similarity
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_closed_form_similarity_exact(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(25, 3))
+    s, R, t = random_similarity(rng)
+    B = s * A @ R.T + t
+
+    s_u, R_u, t_u = umeyama(A, B)
+    assert s_u == pytest.approx(s, abs=1e-9)
+    np.testing.assert_allclose(R_u, R, atol=1e-9)
+    np.testing.assert_allclose(t_u, t, atol=1e-9)
+
+    assert edge_ratio_scale(A, B) == pytest.approx(s, abs=1e-9)
+    assert np.isnan(edge_ratio_scale(A, B, min_edge=1e6))
+
+    for method in ("umeyama", "edge_ratio", "auto"):
+        s_b, R_b, t_b, used = best_similarity(A, B, method, np.random.default_rng(seed))
+        assert used in ("umeyama", "edge_ratio")
+        if method != "auto":
+            assert used == method
+        assert s_b == pytest.approx(s, abs=1e-9), method
+        np.testing.assert_allclose(R_b, R, atol=1e-9)
+        np.testing.assert_allclose(t_b, t, atol=1e-9)
+
+    # batched: several independent problems at once, minimal (k = 3) samples
+    H = 16
+    AA = rng.normal(size=(H, 3, 3))
+    truths = [random_similarity(rng) for _ in range(H)]
+    BB = np.stack([si * a @ Ri.T + ti for a, (si, Ri, ti) in zip(AA, truths)])
+    sb, Rb, tb = batched_umeyama(AA, BB)
+    np.testing.assert_allclose(sb, [x[0] for x in truths], atol=1e-9)
+    np.testing.assert_allclose(Rb, np.stack([x[1] for x in truths]), atol=1e-9)
+    np.testing.assert_allclose(tb, np.stack([x[2] for x in truths]), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(Rb), 1.0, atol=1e-12)
+
+    T = to_matrix(s, R, t)
+    np.testing.assert_allclose(apply(T, A), B, atol=1e-12)
+
+
+def test_similarity_never_returns_a_reflection():
+    rng = np.random.default_rng(7)
+    # near-planar source (thickness 1e-3) and its mirror image across that plane (+ tiny noise):
+    # the unconstrained least-squares orthogonal matrix would be the reflection diag(1, 1, -1)
+    A = np.column_stack([rng.uniform(-1, 1, (40, 2)), rng.normal(scale=1e-3, size=40)])
+    mirror = A * [1, 1, -1]
+    s, R, t = random_similarity(rng)
+    B = s * mirror @ R.T + t + rng.normal(scale=1e-5, size=A.shape)
+    U, _, Vt = np.linalg.svd((B - B.mean(0)).T @ (A - A.mean(0)))
+    assert np.linalg.det(U @ Vt) < 0  # the problem really does favour a reflection
+    s_u, R_u, _ = umeyama(A, B)
+    assert np.linalg.det(R_u) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(R_u @ R_u.T, np.eye(3), atol=1e-12)
+    assert s_u > 0
+    for method in ("umeyama", "edge_ratio", "auto"):
+        _, R_b, _, _ = best_similarity(A, B, method, np.random.default_rng(0))
+        assert np.linalg.det(R_b) == pytest.approx(1.0, abs=1e-12)
+    # batched, minimal samples (three points are always planar)
+    AA = rng.normal(size=(32, 3, 3))
+    BB = AA * [1, 1, -1]  # reflected copies
+    _, Rb, _ = batched_umeyama(AA, BB)
+    np.testing.assert_allclose(np.linalg.det(Rb), 1.0, atol=1e-12)
+
+    # near-planar but a proper similarity: recovered exactly, no sign flip
+    B2 = s * A @ R.T + t
+    s2, R2, t2 = umeyama(A, B2)
+    assert s2 == pytest.approx(s, rel=1e-9)
+    np.testing.assert_allclose(R2, R, atol=1e-8)
+    np.testing.assert_allclose(t2, t, atol=1e-8)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 5. RANSAC under 50% outliers
+# ----------------------------------------------------------------------------------------------------
+
+
+def _separated_points(rng: np.random.Generator, n: int, min_dist: float) -> np.ndarray:
+    pts: list[np.ndarray] = []
+    while len(pts) < n:
+        p = rng.uniform(-1, 1, 3)
+        if not pts or np.linalg.norm(np.asarray(pts) - p, axis=1).min() > min_dist:
+            pts.append(p)
+    return np.asarray(pts)
+
+
+def _ransac_problem(seed: int):
+    """60 salient-like points; the first 30 have their exact (plus tiny noise) image among the targets,
+    the other 30 targets are random points far from every moved source point."""
+    rng = np.random.default_rng(seed)
+    S = _separated_points(rng, 60, 0.15)
+    s, R, t = random_similarity(rng, (0.5, 2.0))
+    threshold = 0.05 * s  # well below the separation (0.15 s) of the moved points
+    moved = s * S @ R.T + t
+    Q = moved.copy()
+    Q[:30] += rng.normal(scale=0.002 * s, size=(30, 3))
+    lo, hi = moved.min(0), moved.max(0)
+    for i in range(30, 60):
+        while True:
+            p = rng.uniform(lo, hi)
+            if np.linalg.norm(moved - p, axis=1).min() > 3 * threshold:
+                Q[i] = p
+                break
+    return rng, S, Q, (s, R, t), threshold
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ransac_half_outliers(seed):
+    rng, S, Q, (s, R, t), thr = _ransac_problem(seed)
+    # correspondence i -> i for all 60: 30 right, 30 wrong; minimal samples are random triples of them
+    samples = np.array([rng.choice(60, 3, replace=False) for _ in range(400)])
+    hyp = ransac_hypotheses(S, Q, samples, samples, thr, keep=10)
+    assert len(hyp) == 10
+    assert np.all(np.diff(hyp.score) <= 0)  # sorted by decreasing score
+    assert hyp.score[0] == 30
+    rr = refit(float(hyp.scale[0]), hyp.rotation[0], hyp.translation[0], S, Q, cKDTree(Q), thr)
+    assert rot_err_deg(rr.rotation, R) < 0.5
+    assert abs(rr.scale / s - 1) < 0.01
+    assert np.linalg.norm(rr.translation - t) < 0.01 * s
+    np.testing.assert_array_equal(np.sort(rr.inliers_src), np.arange(30))
+    np.testing.assert_array_equal(rr.inliers_tgt[np.argsort(rr.inliers_src)], np.arange(30))
+    assert rr.n_inliers == 30
+
+
+def test_ransac_scale_bounds_exclude_hypotheses():
+    rng, S, Q, (s, R, t), thr = _ransac_problem(0)
+    samples = np.array([rng.choice(60, 3, replace=False) for _ in range(400)])
+    for bounds in ((0.01, s / 1.25), (1.25 * s, 100.0)):
+        hyp = ransac_hypotheses(S, Q, samples, samples, thr, scale_bounds=bounds, keep=400)
+        assert np.all((hyp.scale >= bounds[0]) & (hyp.scale <= bounds[1]))
+        assert not np.any(np.abs(hyp.scale / s - 1) < 0.05)
+        assert len(hyp) == 0 or hyp.score.max() < 15  # nothing close to the 30 planted inliers
+    # bounds that include the true scale give it back
+    hyp = ransac_hypotheses(S, Q, samples, samples, thr, scale_bounds=(s / 1.25, 1.25 * s), keep=1)
+    assert hyp.score[0] == 30 and abs(hyp.scale[0] / s - 1) < 0.01
+    # degenerate samples (repeated indices) are skipped entirely
+    rep = np.array([[0, 0, 1], [2, 3, 3]])
+    assert len(ransac_hypotheses(S, Q, rep, rep, thr)) == 0
+
+
+# ----------------------------------------------------------------------------------------------------
+# 6. occupancy grid
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_occupancy_grid_matches_radius_check():
+    rng = np.random.default_rng(0)
+    P = rng.uniform(0, 1, size=(300, 3))
+    r = 0.05
+    grid = OccupancyGrid(P, r)
+    q = rng.uniform(-0.1, 1.1, size=(100_000, 3))
+    d, _ = cKDTree(P).query(q)
+    inside = grid.contains(q)
+    assert inside.shape == (len(q),)
+    clearly_in, clearly_out = d < 0.6 * r, d > 1.4 * r
+    assert clearly_in.sum() > 1000 and clearly_out.sum() > 50_000
+    assert inside[clearly_in].all()
+    # The grid has cells of r/3, so the answer is exact only up to a cell diagonal (sqrt(3) r / 3):
+    # a point can be reported inside at up to sqrt(22)/3 r ~ 1.56 r (see the report). Between 1.4 r
+    # and that bound a handful of false positives are allowed; beyond it there must be none.
+    assert inside[clearly_out].mean() < 1e-4
+    assert not inside[d > np.sqrt(22.0) / 3.0 * r].any()
+    # provable inside bound: a point closer than sqrt(3)/3 r is always reported inside
+    assert inside[d < np.sqrt(3.0) / 3.0 * r].all()
+    # any leading shape is accepted
+    np.testing.assert_array_equal(grid.contains(q[:600].reshape(2, 300, 3)), inside[:600].reshape(2, 300))
+    # far outside the grid's box: False, no index error
+    assert not grid.contains(np.array([[1e6, 0, 0], [-1e6, -1e6, -1e6]])).any()
+
+
+# ----------------------------------------------------------------------------------------------------
+# 7. supervoxels on the shipped bunny
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_supervoxels_on_bunny():
+    cfg = EngineConfig()
+    work, normals = bunny_working(0)
+    assert len(work) <= cfg.preprocess.max_points
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-9)
+    sv = default_supervoxels(work, normals)
+    S = len(sv.centroids)
+    assert 30 <= S <= 200, S
+    assert sv.labels.shape == (len(work),)
+    assert sv.labels.min() >= -1 and sv.labels.max() == S - 1
+    assert set(np.unique(sv.labels[sv.labels >= 0])) == set(range(S))  # every supervoxel has voxels
+    np.testing.assert_array_equal(np.bincount(sv.labels[sv.labels >= 0], minlength=S), sv.sizes)
+    assert sv.sizes.min() >= cfg.supervoxel.min_voxels
+    assert (sv.labels >= 0).mean() > 0.95  # a clean surface is (almost) entirely covered
+    np.testing.assert_allclose(np.linalg.norm(sv.normals, axis=1), 1.0, atol=1e-9)
+    # each centroid is the mean of its voxels and lies near the surface
+    for k in (0, S // 2, S - 1):
+        np.testing.assert_allclose(sv.centroids[k], work[sv.labels == k].mean(axis=0), atol=1e-12)
+    d, _ = cKDTree(work).query(sv.centroids)
+    assert np.median(d) < cfg.supervoxel.voxel_ratio
+    assert d.max() < 3 * cfg.supervoxel.voxel_ratio
+
+
+def test_supervoxels_with_outliers():
+    work, _ = bunny_working(0)
+    rng = np.random.default_rng(1)
+    n_out = len(work) // 10
+    outliers = rng.uniform(work.min(axis=0), work.max(axis=0), size=(n_out, 3))
+    clean = default_supervoxels(work, estimate_normals(work, 16))
+    noisy_pts = np.vstack([work, outliers])
+    noisy = default_supervoxels(noisy_pts, estimate_normals(noisy_pts, 16))
+    assert len(noisy.centroids) < 1.3 * len(clean.centroids)
+    lab = noisy.labels[len(work):]
+    size = np.where(lab >= 0, noisy.sizes[np.maximum(lab, 0)], 0)
+    unassigned_or_tiny = (lab < 0) | (size <= 3)
+    assert unassigned_or_tiny.mean() > 0.6, unassigned_or_tiny.mean()
+    # supervoxels made mostly of outliers are rare and tiny; the others are dominated by the surface
+    share = np.bincount(lab[lab >= 0], minlength=len(noisy.sizes)) / noisy.sizes
+    assert (share > 0.5).sum() <= 3 and noisy.sizes[share > 0.5].max(initial=0) <= 3
+    assert np.median(share) < 0.05
+    # the surface stays covered
+    assert (noisy.labels[: len(work)] >= 0).mean() > 0.95
+
+
+def test_supervoxels_without_any_seed_returns_empty():
+    pts = np.random.default_rng(0).uniform(0, 1, size=(40, 3))  # isolated voxels: no seed survives
+    sv = supervoxels(pts, estimate_normals(pts, 5), voxel=0.02, seed_spacing=0.12)
+    assert sv.centroids.shape == (0, 3) and sv.normals.shape == (0, 3)
+    np.testing.assert_array_equal(sv.labels, -1)
+
+
+def test_supervoxel_count_robust_to_outliers():
+    work, _ = bunny_working(0)
+    rng = np.random.default_rng(1)
+    outliers = rng.uniform(work.min(axis=0), work.max(axis=0), size=(len(work) // 10, 3))
+    clean = default_supervoxels(work, estimate_normals(work, 16))
+    noisy_pts = np.vstack([work, outliers])
+    noisy = default_supervoxels(noisy_pts, estimate_normals(noisy_pts, 16))
+    # 10% outliers should not remove more than a few percent of the salient points
+    assert len(noisy.centroids) > 0.9 * len(clean.centroids)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 8. preprocess
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_validate_cloud_errors():
+    rng = np.random.default_rng(0)
+    with pytest.raises(DegenerateCloudError, match=r"^src: all 50 points are identical$"):
+        validate_cloud(np.tile([1.0, 2.0, 3.0], (50, 1)), "src")
+    line = np.outer(rng.uniform(-1, 1, 50), [1.0, 2.0, -0.5]) + [3.0, 0.0, 1.0]
+    with pytest.raises(DegenerateCloudError, match=r"^tgt: points are collinear$"):
+        validate_cloud(line, "tgt")
+    plane = np.column_stack([rng.uniform(-1, 1, (200, 2)), np.zeros(200)]) @ Rotation.random(
+        random_state=rng).as_matrix().T
+    with pytest.raises(DegenerateCloudError, match=r"^src: points are planar \(registration would be ambiguous\)$"):
+        validate_cloud(plane, "src")
+    with pytest.raises(DegenerateCloudError, match=r"^src: only 5 finite points \(need at least 10\)$"):
+        validate_cloud(rng.normal(size=(5, 3)), "src")
+    with pytest.raises(DegenerateCloudError, match=r"expected an \(N, 3\) array"):
+        validate_cloud(rng.normal(size=(20, 2)), "src")
+    # NaN / inf rows are dropped; what remains is returned as float64
+    pts = rng.normal(size=(30, 3))
+    bad = pts.copy()
+    bad[[3, 17], 1] = np.nan
+    bad[25, 0] = np.inf
+    out = validate_cloud(bad.astype(np.float32), "src")
+    assert out.dtype == np.float64 and out.shape == (27, 3)
+    np.testing.assert_allclose(out, np.delete(pts, [3, 17, 25], axis=0).astype(np.float32))
+    # ... and the count is of finite points
+    few = rng.normal(size=(12, 3))
+    few[:3] = np.nan
+    with pytest.raises(DegenerateCloudError, match="only 9 finite points"):
+        validate_cloud(few, "src")
+    # a thin but genuinely 3-D cloud passes
+    thin = np.column_stack([rng.uniform(-1, 1, (200, 2)), rng.uniform(-1e-3, 1e-3, 200)])
+    assert validate_cloud(thin, "src").shape == (200, 3)
+
+
+def test_robust_centre_and_size_rotation():
+    pts = bunny()
+    centre, size = robust_centre_and_size(pts)
+    assert size > 0
+    rels = []
+    for R in Rotation.random(20, random_state=np.random.default_rng(0)).as_matrix():
+        _, size_r = robust_centre_and_size(pts @ R.T + [5.0, -3.0, 2.0])
+        rels.append(abs(size_r / size - 1))
+    rels = np.asarray(rels)
+    # the coordinate-wise median is not rotation-equivariant, so the size wobbles slightly
+    assert np.median(rels) < 0.01, rels
+    assert np.percentile(rels, 90) < 0.02, rels
+    assert rels.max() < 0.03, rels
+    # translation / uniform scale: exactly equivariant
+    c2, s2 = robust_centre_and_size(2.5 * pts + [1e3, 0, -7])
+    assert s2 == pytest.approx(2.5 * size, rel=1e-12)
+    np.testing.assert_allclose(c2, 2.5 * centre + [1e3, 0, -7], rtol=1e-12)
+    # normalise: robust diameter 1 and exact round trip
+    nc = normalise(pts)
+    assert robust_centre_and_size(nc.points)[1] == pytest.approx(1.0, rel=1e-12)
+    np.testing.assert_allclose(apply(nc.to_original(), nc.points), pts, atol=1e-12)
+
+
+def test_downsample_to_caps_and_is_seeded():
+    pts = normalise(bunny()).points
+    a = downsample_to(pts, 0.02, 3000, np.random.default_rng(5))
+    b = downsample_to(pts, 0.02, 3000, np.random.default_rng(5))
+    assert a.shape == (3000, 3)
+    np.testing.assert_array_equal(a, b)
+    big = downsample_to(pts, 0.05, 100_000, np.random.default_rng(5))
+    # one centroid per occupied voxel, no random cut: each voxel of the input appears exactly once
+    assert 100 < len(big) < len(pts)
+    occupied = np.unique(np.floor(pts / 0.05).astype(np.int64), axis=0)
+    keys = np.unique(np.floor(big / 0.05).astype(np.int64), axis=0)
+    assert len(big) == len(occupied) == len(keys)
+
+
+# ----------------------------------------------------------------------------------------------------
+# 9. refinement
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_point_to_plane_icp_refines_perturbed_transform(seed):
+    rng = np.random.default_rng(seed)
+    src, _ = bunny_working(seed)
+    s, R, t = random_similarity(rng, (0.5, 2.0))
+    T_gt = to_matrix(s, R, t)
+    sub = src[rng.choice(len(src), len(src) // 2, replace=False)]
+    tgt = apply(T_gt, sub) + rng.normal(scale=0.002 * s, size=sub.shape)
+    normals = estimate_normals(tgt, 16)
+    axis = rng.normal(size=3)
+    dR = Rotation.from_rotvec(np.radians(3.0) * axis / np.linalg.norm(axis)).as_matrix()
+    T0 = to_matrix(1.03 * s, R @ dR, t)
+    diag = float(np.linalg.norm(np.ptp(tgt, axis=0)))
+    e0 = transform_errors(T0, T_gt, diag)
+    assert e0.rot_err_deg == pytest.approx(3.0, abs=1e-6) and e0.scale_err == pytest.approx(0.03, abs=1e-9)
+    T, it = scaled_point_to_plane_icp(src, tgt, normals, T0, 30, 0.08 * s, 0.02 * s, (0.1, 10.0))
+    assert 1 <= it <= 30
+    e = transform_errors(T, T_gt, diag)
+    assert e.rot_err_deg < 1.0, e
+    assert e.scale_err < 0.01, e
+    assert e.trans_err_rel < 0.01, e
+    # the result is a proper similarity
+    A = T[:3, :3]
+    sc = np.linalg.det(A) ** (1 / 3)
+    np.testing.assert_allclose((A / sc) @ (A / sc).T, np.eye(3), atol=1e-9)
+    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
