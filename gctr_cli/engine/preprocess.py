@@ -54,8 +54,11 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
         raise DegenerateCloudError(f"{name}: all {len(pts)} points are identical")
     if sv[1] < 1e-9 * sv[0]:
         raise DegenerateCloudError(f"{name}: points are collinear")
-    if sv[2] < 1e-6 * sv[0]:
-        raise DegenerateCloudError(f"{name}: points are planar (registration would be ambiguous)")
+    if sv[2] < 1e-3 * sv[0]:
+        # Thinner than 0.1% of its extent: flat up to noise, so the rotation about the normal and
+        # the scale are not observable; better a clear failure than a confident wrong matrix.
+        raise DegenerateCloudError(f"{name}: points are planar (thickness {sv[2] / sv[0]:.1e} of the extent; "
+                                   "registration would be ambiguous)")
     return pts
 
 
