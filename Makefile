@@ -6,12 +6,14 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 DEMO   ?= demo_out
 
-.PHONY: setup system-deps demo test bench-engine clean help
+.PHONY: setup system-deps browser-deps demo test bench-engine clean help
 
 help:
 	@echo "make demo          set up and run gctr batch on a small cross-source set (results in $(DEMO)/)"
 	@echo "make test          set up and run the test suite"
 	@echo "make bench-engine  full engine benchmark -> bench/ENGINE.md (tens of minutes)"
+	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the same pairs -> bench/RESULTS.md (~30 min)"
+	@echo "make bench-quick   the same on 15 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
 
 # Open3D's wheel links against libusb-1.0; install it from Debian's packages when it is missing.
 system-deps:
@@ -23,6 +25,18 @@ system-deps:
 	else \
 		echo "error: the system library libusb-1.0-0 is missing (Open3D needs it);"; \
 		echo "       install it, e.g. 'sudo apt-get install libusb-1.0-0', then run make again"; exit 1; \
+	fi
+
+# Chromium renders OUTDIR/report.html in the report test (headless); skipped there when missing.
+browser-deps:
+	@if command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1; then \
+		echo "chromium: present"; \
+	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then \
+		echo "installing chromium (headless browser for the report test)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium fonts-liberation >/dev/null \
+			|| echo "warning: could not install chromium; the browser test will be skipped"; \
+	else \
+		echo "note: chromium is not installed; the browser test of report.html will be skipped"; \
 	fi
 
 $(BIN)/python:
@@ -41,7 +55,7 @@ demo: setup
 	$(BIN)/python -m data_scripts.make_benchmark demo --out $(DEMO)/data
 	$(BIN)/gctr batch $(DEMO)/data/pairs.csv -c configs/default.yaml -o $(DEMO)/results
 
-test: setup
+test: setup browser-deps
 	$(BIN)/python -m pytest -q
 
 bench-engine: setup
@@ -49,3 +63,12 @@ bench-engine: setup
 
 clean:
 	rm -rf $(DEMO) .pytest_cache build *.egg-info
+
+# Side-by-side benchmark of gctr and the comparison methods (issue 4): bench/RESULTS.md + bench/*.png.
+.PHONY: bench bench-quick
+bench: setup
+	$(BIN)/python -m data_scripts.bench_compare --out bench/RESULTS.md
+
+# Day-to-day variant (< 5 min on 2 cores): report in bench/work/compare-quick/RESULTS.md.
+bench-quick: setup
+	$(BIN)/python -m data_scripts.bench_compare --quick

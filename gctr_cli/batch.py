@@ -241,6 +241,14 @@ def _exc_message(exc: BaseException) -> str:
 SNAPSHOT_LOGGER = "gctr_cli.snapshots"
 
 
+def _name_files(message: str, spec: Any) -> str:
+    """The engine names the clouds ``source``/``target`` (it sees arrays); a row names the files."""
+    for role, path in (("source", spec.source), ("target", spec.target)):
+        if message.startswith(f"{role}: "):
+            return f"{role} {path}: {message[len(role) + 2:]}"
+    return message
+
+
 def run_pair(
     spec: Any,
     config: Config,
@@ -264,6 +272,8 @@ def run_pair(
     """
     clouds: dict[str, np.ndarray] = {}
     outcome = _run_pair(spec, config, register_fn, seed, clouds)
+    if snapshot and outcome.failure == "input":
+        _load_other_clouds(spec, clouds)
     if snapshot and clouds:
         try:
             from dataclasses import replace
@@ -275,6 +285,25 @@ def run_pair(
         except Exception as exc:  # noqa: BLE001 - a snapshot must never fail the pair
             logging.getLogger(SNAPSHOT_LOGGER).warning("snapshot failed: %s", _exc_message(exc))
     return outcome
+
+
+def _load_other_clouds(spec: Any, clouds: dict[str, np.ndarray]) -> None:
+    """For the snapshot of a pair whose loading failed: load the clouds that were not tried, silently
+    (the pair's row already names its problem; no new warning must change its message)."""
+    from gctr_cli.io import load_point_cloud
+
+    io_logger = logging.getLogger("gctr_cli.io")
+    level = io_logger.level
+    io_logger.setLevel(logging.ERROR)
+    try:
+        for role, path in (("source", spec.source), ("target", spec.target)):
+            if role not in clouds:
+                try:
+                    clouds[role] = load_point_cloud(path)
+                except Exception:  # noqa: BLE001
+                    pass
+    finally:
+        io_logger.setLevel(level)
 
 
 def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: int | None,
@@ -331,7 +360,7 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
         rmse = float(result.inlier_rmse)
         if result.status != "ok":
             return _failed(
-                spec, seed, result.message or "registration failed", "register", runtime,
+                spec, seed, _name_files(result.message or "registration failed", spec), "register", runtime,
                 fitness=fitness, inlier_rmse=rmse,
             )
         T = np.array(result.transform, dtype=np.float64)
@@ -1090,7 +1119,11 @@ def _prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
     (outdir / MATRICES_DIR).mkdir(exist_ok=True)
 
     if not resume:
-        if transforms.exists() and transforms.stat().st_size > 0:
+        # a file with only its header (a run stopped before its first pair, e.g. no dask scheduler) holds
+        # nothing: start afresh; one with rows, or not written by gctr, is never overwritten
+        if transforms.exists() and transforms.stat().st_size > 0 and (
+            transforms.read_bytes()[:4096].count(b"\n") > 1 or _read_rows(transforms, TRANSFORMS_COLUMNS)
+        ):
             raise BatchError(
                 f"{transforms} already exists: pass --resume to finish that run, or choose another output folder"
             )

@@ -142,6 +142,8 @@ def main(verbose: int) -> None:
       gctr register scan_a.ply scan_b.pcd -o a_to_b.txt
       gctr manifest lidar/ photogrammetry/ --gt-dir gt/ -o pairs.csv
       gctr batch pairs.csv -c configs/default.yaml -o results/
+      gctr batch pairs.csv -o results/ --executor dask --scheduler tcp://HOST:8786
+      gctr show scan_a.ply scan_b.pcd --matrix a_to_b.txt -o view.png
       gctr config show > my.yaml && gctr config check my.yaml
 
     Every matrix is a 4x4 [[s*R, t], [0 0 0 1]] mapping the SOURCE cloud onto the TARGET.
@@ -260,7 +262,10 @@ def _print_summary(summary: Any, config: Any) -> None:
             echo(f"  {pid}: {msg}")
         if len(s.failures) > 50:
             echo(f"  ... and {len(s.failures) - 50} more (see transforms.csv)")
-    echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml")
+    snaps = ", snapshots/" if (Path(s.outdir) / "snapshots").is_dir() else ""
+    echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml{snaps}")
+    if (Path(s.outdir) / "report.html").exists():
+        echo(f"report: {s.outdir}/report.html")
 
 
 @main.command(epilog=EXIT_CODES_HELP)
@@ -273,17 +278,33 @@ def _print_summary(summary: Any, config: Any) -> None:
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 @click.option("--min-success", type=click.FloatRange(0.0, 1.0), metavar="RATE",
               help="Exit 3 if the success rate over pairs with ground truth is below RATE (0..1).")
+@click.option("--executor", type=click.Choice(["local", "dask"]), default=None,
+              help="Where pairs run: 'local' process pool (default) or a dask.distributed cluster "
+                   "(pip install 'gctr-cli[dask]').")
+@click.option("--scheduler", metavar="ADDRESS",
+              help="Dask scheduler address, e.g. tcp://HOST:8786 (implies --executor dask). Without it "
+                   "--executor dask starts a local cluster of -j worker processes.")
+@click.option("--snapshots", is_flag=True,
+              help="Also write OUTDIR/snapshots/<pair_id>.png: both clouds before and after registration.")
 def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | None, resume: bool, quiet: bool,
-          min_success: float | None) -> None:
-    """Register every pair of MANIFEST in a pool of worker processes.
+          min_success: float | None, executor: str | None, scheduler: str | None, snapshots: bool) -> None:
+    """Register every pair of MANIFEST in a pool of worker processes (or on a dask cluster).
 
     MANIFEST is a CSV with header pair_id,source,target[,gt] (relative paths are relative to the
     manifest's folder). Results are written to OUTDIR as pairs finish: transforms.csv (one row per
     pair, ok or failed with a message), tm_errors.csv (pairs with ground truth), matrices/<pair_id>.txt
-    and config.yaml (the resolved config). A crashed or timed-out pair gets a failed row and the
-    batch goes on. An interrupted run keeps every finished pair: rerun with --resume to finish it.
-    Results do not depend on -j.
+    and config.yaml (the resolved config); at the end report.html, a self-contained page with the
+    summary, a sortable table of the pairs and the error distribution. A crashed or timed-out pair
+    gets a failed row and the batch goes on. An interrupted run keeps every finished pair: rerun with
+    --resume to finish it. Results do not depend on -j or on the executor.
+
+    With --executor dask the input files must be readable by every worker at the same absolute
+    paths (a shared filesystem); outputs are written by this process only.
     """
+    if executor is None:
+        executor = "dask" if scheduler else "local"
+    elif executor == "local" and scheduler:
+        _die("--scheduler needs --executor dask")
     config = _load_config(config_path)
     from gctr_cli import batch as batch_mod
     from gctr_cli.manifest import ManifestError, read_manifest
@@ -324,7 +345,8 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
     try:
         with _sigterm_as_interrupt(), redirect:
             summary = batch_mod.run_batch(
-                pairs, config, outdir, workers=workers, resume=resume, on_start=on_start, on_outcome=on_outcome
+                pairs, config, outdir, workers=workers, resume=resume, on_start=on_start, on_outcome=on_outcome,
+                executor=executor, scheduler=scheduler, snapshots=snapshots,
             )
     except batch_mod.BatchError as exc:
         _die(str(exc))
@@ -345,6 +367,59 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         )
         sys.exit(EXIT_BELOW_MIN_SUCCESS)
     sys.exit(EXIT_OK if summary.all_ok else EXIT_FAILED)
+
+
+# ----------------------------------------------------------------------------------------------------
+# show
+# ----------------------------------------------------------------------------------------------------
+
+
+@main.command()
+@click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-m", "--matrix", type=click.Path(dir_okay=False, path_type=Path),
+              help="4x4 source->target matrix (e.g. OUTDIR/matrices/<pair_id>.txt): also show the clouds registered.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="PNG file to write.")
+@click.option("--max-points", type=click.IntRange(min=10), default=3000, show_default=True,
+              help="Points drawn per cloud (evenly subsampled).")
+@click.option("--title", help="Title of the picture (default: the two file names).")
+def show(source: Path, target: Path, matrix: Path | None, output: Path, max_points: int, title: str | None) -> None:
+    """Draw SOURCE (orange) and TARGET (blue) in three orthogonal views into a PNG.
+
+    The top row shows the input clouds as they are; with --matrix, the bottom row shows the target
+    with the source mapped by the matrix (same picture as batch --snapshots). Rendering is headless.
+
+    \b
+    Exit codes:
+      0  picture written
+      2  usage error, unreadable cloud or matrix, or the PNG cannot be written
+    """
+    from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
+    from gctr_cli.metrics import is_similarity
+    from gctr_cli.snapshots import render_snapshot, write_png
+
+    try:
+        src = load_point_cloud(source)
+        tgt = load_point_cloud(target)
+    except PointCloudError as exc:
+        _die(str(exc))
+    T = None
+    if matrix is not None:
+        try:
+            T = read_matrix(matrix)
+        except MatrixError as exc:
+            _die(str(exc))
+        ok, reason = is_similarity(T)
+        if not ok:
+            logger.warning("%s is not a similarity transform (%s); drawing it anyway", matrix, reason)
+    note = "" if T is not None else "input only (pass --matrix to also see the registered clouds)"
+    png = render_snapshot(src, tgt, T, title=title or f"{source.name} -> {target.name}", note=note,
+                          max_points=max_points)
+    try:
+        write_png(output, png)
+    except OSError as exc:
+        _die(f"cannot write {output}: {exc.strerror or exc}")
+    click.echo(f"wrote {output}")
 
 
 # ----------------------------------------------------------------------------------------------------

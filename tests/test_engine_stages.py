@@ -521,7 +521,7 @@ def test_validate_cloud_errors():
         validate_cloud(line, "tgt")
     plane = np.column_stack([rng.uniform(-1, 1, (200, 2)), np.zeros(200)]) @ Rotation.random(
         random_state=rng).as_matrix().T
-    with pytest.raises(DegenerateCloudError, match=r"^src: points are planar \(registration would be ambiguous\)$"):
+    with pytest.raises(DegenerateCloudError, match=r"^src: points are planar \(thickness .* of the extent; registration would be ambiguous\)$"):
         validate_cloud(plane, "src")
     with pytest.raises(DegenerateCloudError, match=r"^src: only 5 finite points \(need at least 10\)$"):
         validate_cloud(rng.normal(size=(5, 3)), "src")
@@ -540,9 +540,13 @@ def test_validate_cloud_errors():
     few[:3] = np.nan
     with pytest.raises(DegenerateCloudError, match="only 9 finite points"):
         validate_cloud(few, "src")
-    # a thin but genuinely 3-D cloud passes
-    thin = np.column_stack([rng.uniform(-1, 1, (200, 2)), rng.uniform(-1e-3, 1e-3, 200)])
+    # a thin but genuinely 3-D cloud (relief of 1% of its extent) passes; one flat up to 1e-4
+    # noise counts as planar
+    thin = np.column_stack([rng.uniform(-1, 1, (200, 2)), rng.uniform(-1e-2, 1e-2, 200)])
     assert validate_cloud(thin, "src").shape == (200, 3)
+    flat = np.column_stack([rng.uniform(-1, 1, (200, 2)), rng.uniform(-1e-4, 1e-4, 200)])
+    with pytest.raises(DegenerateCloudError, match="planar"):
+        validate_cloud(flat, "src")
 
 
 def test_robust_centre_and_size_rotation():

@@ -84,7 +84,7 @@ class Expected:
 
     file: Path
     keywords: tuple[str, ...]
-    names_file: bool = True  #: False: see test_planar_cloud_message_names_the_file (xfail)
+    names_file: bool = True  #: the failed row's message must contain the file's path
 
 
 @dataclass
@@ -207,8 +207,8 @@ def build_mixed(root: Path) -> Mixed:
     uv = rng.uniform(-0.1, 0.1, size=(N_GOOD, 2))
     plane = np.c_[uv, np.zeros(N_GOOD)] @ rotation([1.0, 2.0, 0.5], 30.0).T + 0.05
     save_point_cloud(bad / "plane.ply", plane)
-    add_bad("planar", bad / "plane.ply", ("source: points are planar",), names_file=False)
-    # a scanned flat wall: planar up to a noise of 1e-4 of its size (see the xfail test below)
+    add_bad("planar", bad / "plane.ply", ("points are planar",))
+    # a scanned flat wall: planar up to a noise of 1e-4 of its size (must fail as planar)
     R4 = rotation([1.0, 2.0, 3.0], 40.0)
     wall = [np.c_[rng.uniform(-0.1, 0.1, size=(N_GOOD, 2)), rng.normal(scale=2e-5, size=N_GOOD)] for _ in range(2)]
     T4 = similarity(1.5, R4, [0.1, 0.2, 0.3])
@@ -323,10 +323,6 @@ def test_a_few_non_finite_points_are_dropped_with_a_warning(mixed):
 
 
 @pytest.mark.engine
-@pytest.mark.xfail(strict=True, reason=(
-    "the engine's degeneracy messages say 'source'/'target', not the file: run_pair (gctr_cli/batch.py, "
-    "step 3) passes result.message through unchanged, so a planar cloud gives 'source: points are planar "
-    "(registration would be ambiguous)' without the file name the issue asks for"))
 def test_planar_cloud_message_names_the_file(mixed):
     m, out, _, _ = mixed
     r = by_id(read_csv(out / "transforms.csv")[1])["planar"]

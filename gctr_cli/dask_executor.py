@@ -1,0 +1,509 @@
+"""Run the pairs of a batch on a dask.distributed cluster (``gctr batch --executor dask``).
+
+An executor for :func:`gctr_cli.batch.run_batch`: it takes the ``(spec, seed)`` tasks and yields one
+:class:`~gctr_cli.batch.PairOutcome` per task as the futures complete; the batch process writes the
+outputs exactly as with the local pool (same files, same commit order, ``--resume``, lock).
+
+* **Cluster.** With a ``scheduler`` address (``tcp://HOST:8786``) it connects to a running cluster
+  (started by hand, by dask-jobqueue on Slurm/PBS/..., by dask-kubernetes, ...). Without one it starts a
+  ``LocalCluster`` of ``n_workers`` processes with one thread each, which it closes at the end.
+* **Same work, same results.** Each task calls :func:`gctr_cli.batch.run_pair` with the seed derived
+  from the config seed and the pair id, exactly as a local worker does. Native thread pools are capped
+  to one thread inside every task (:func:`_single_threaded`): ``OMP_NUM_THREADS`` and friends are set
+  in the worker's environment (for pools created later), ``threadpoolctl`` limits the BLAS/OpenMP
+  libraries already loaded, and Open3D gets ``set_max_threads(1)``. So the transforms are identical
+  to the local pool's, bit for bit, whatever the workers' own settings. LocalCluster workers also get
+  the variables in their environment before they start.
+* **Bounded submission.** At most as many tasks are in flight as the cluster has worker threads (at
+  least one), so memory stays bounded for any manifest size, and workers added to an adaptive cluster
+  are used as they join. A worker plugin (:class:`GctrWorkerSetup`) prepares every worker, also those
+  that join later: one-thread native pools and the imports a pair needs, so import time does not
+  count against the first pair's time limit.
+* **Failures.** A task whose worker dies (segfault, out-of-memory kill by the nanny) ends in
+  ``KilledWorker`` and gives a failed row ``worker died (...)``. The LocalCluster is started with
+  ``distributed.scheduler.allowed-failures = 0`` so that, as with the local pool, the first death
+  fails the pair; an external scheduler keeps its own setting (default 3 retries on other workers,
+  which also covers preempted nodes). Any other exception of a task gives a failed row naming it.
+* **Time limit** (best effort): a pair running longer than ``batch.time_limit_s`` (measured from when
+  its task starts executing on a worker, which the task announces with a dask event; waiting for a
+  worker does not count) gets the failed row ``timed out after N s``; its future is cancelled and its worker process replaced (a Python thread
+  cannot be stopped otherwise): killed at once in our own LocalCluster (its nanny starts a fresh one),
+  restarted through its nanny on an external cluster. A worker without a nanny keeps computing until
+  the pair ends.
+* **Lost scheduler.** If the connection to the scheduler is lost, the batch stops with a
+  :class:`~gctr_cli.batch.BatchError`; the finished pairs are saved and ``--resume`` continues.
+
+Input paths in the manifest are resolved to absolute paths by the client (relative ones against the
+manifest's folder) and must be readable at those same paths on every worker (shared filesystem). The
+outputs are written by the batch process only; snapshots travel back inside the outcomes, so the
+output folder need not be shared.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import threading
+import time
+import uuid
+import warnings
+from collections import deque
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+from gctr_cli.batch import (
+    THREAD_ENV_VARS,
+    BatchError,
+    PairOutcome,
+    _default_register,
+    _exc_message,
+    _failed,
+    _limit_native_threads,
+    _resolve_ref,
+    _with_warnings,
+    run_pair,
+)
+from gctr_cli.config import Config
+
+try:  # the class must exist at import time for the plugin to pickle by reference
+    from distributed.diagnostics.plugin import WorkerPlugin as _WorkerPluginBase
+except ImportError:  # pragma: no cover - dask is an optional extra; check_available() reports it
+    _WorkerPluginBase = object  # type: ignore[assignment,misc]
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["check_available", "dask_outcomes"]
+
+INSTALL_HINT = "pip install 'gctr-cli[dask]'"
+#: name of the worker plugin (re-registering replaces it)
+PLUGIN_NAME = "gctr-worker-setup"
+#: a task lost with a worker that gctr itself killed (time limit) is resubmitted at most this often
+MAX_RESUBMITS = 2
+#: seconds to wait for the scheduler when connecting
+CONNECT_TIMEOUT_S = 30.0
+#: the loop wakes up at least this often (new workers, time limits, lost scheduler)
+POLL_S = 0.5
+#: seconds given to a nanny to restart a worker whose pair timed out
+RESTART_TIMEOUT_S = 60.0
+
+
+def check_available() -> None:
+    """Raise :class:`BatchError` with the install command when dask.distributed is missing."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError as exc:
+        raise BatchError(f"the dask executor needs dask.distributed ({exc}); install it with: {INSTALL_HINT}") from None
+
+
+# ----------------------------------------------------------------------------------------------------
+# the task (runs on a worker)
+# ----------------------------------------------------------------------------------------------------
+
+
+class _ThreadRecords(logging.Handler):
+    """Collects the warnings logged by the current thread while one pair runs."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.thread = threading.get_ident()
+        self.records: list[tuple[str, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread != self.thread:
+            return
+        try:
+            self.records.append((record.name, record.getMessage()))
+        except Exception:  # noqa: BLE001
+            pass
+
+
+@contextlib.contextmanager
+def _single_threaded() -> Iterator[None]:
+    """One thread for BLAS/OpenMP/Open3D while a pair runs on a dask worker (see the module docstring)."""
+    for var in THREAD_ENV_VARS:
+        os.environ[var] = "1"
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # the dask extra installs it; the env variables still cover fresh workers
+        limits: Any = contextlib.nullcontext()
+    else:
+        limits = threadpool_limits(limits=1)
+    with limits:
+        _limit_native_threads()
+        yield
+
+
+class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
+    """Worker plugin: prepares every worker, including those that join or restart later.
+
+    Caps native thread pools to one thread (environment variables for pools not yet created,
+    ``threadpoolctl`` for loaded BLAS/OpenMP libraries, Open3D's ``set_max_threads``) and imports
+    what a pair needs (readers, the register function, matplotlib for snapshots), so that import time
+    does not count against the first pair's time limit. Problems are left for the task to report.
+    """
+
+    def __init__(self, config: Config, register_ref: str | None, snapshots: bool) -> None:
+        self.config = config
+        self.register_ref = register_ref
+        self.snapshots = snapshots
+
+    def setup(self, worker: Any = None) -> None:  # noqa: ARG002
+        for var in THREAD_ENV_VARS:
+            os.environ[var] = "1"
+        try:
+            import gctr_cli.io  # noqa: F401
+
+            if self.register_ref:
+                _resolve_ref(self.register_ref)
+            else:
+                _default_register(self.config)
+            if self.snapshots:
+                import matplotlib.backends.backend_agg  # noqa: F401
+                import matplotlib.figure  # noqa: F401
+
+                import gctr_cli.snapshots  # noqa: F401
+        except Exception:  # noqa: BLE001 - run_task reports it per pair
+            logger.debug("gctr worker setup failed", exc_info=True)
+        try:
+            from threadpoolctl import threadpool_limits
+
+            threadpool_limits(limits=1)
+        except Exception:  # noqa: BLE001
+            pass
+        _limit_native_threads()
+
+
+def _announce_start(topic: str | None) -> None:
+    """Tell the client that this task started executing (the start of its time limit)."""
+    if not topic:
+        return
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+        worker.log_event(topic, {"key": str(worker.get_current_task()), "worker": worker.address})
+    except Exception:  # noqa: BLE001 - only the time limit depends on it
+        pass
+
+
+def run_task(spec: Any, seed: int, config: Config, register_ref: str | None, snapshots: bool,
+             start_topic: str | None = None) -> PairOutcome:
+    """One pair on a dask worker: :func:`run_pair` single-threaded, with its warnings attached."""
+    _announce_start(start_topic)
+    root = logging.getLogger()
+    handler = _ThreadRecords()
+    root.addHandler(handler)
+    try:
+        with _single_threaded():
+            try:
+                import gctr_cli.io  # noqa: F401
+
+                register_fn = _resolve_ref(register_ref) if register_ref else _default_register(config)
+            except Exception as exc:  # noqa: BLE001
+                return _failed(spec, seed, f"worker start-up failed: {_exc_message(exc)}", "worker", 0.0)
+            _limit_native_threads()  # Open3D may have been loaded just now
+            outcome = run_pair(spec, config, register_fn, seed=seed, snapshot=snapshots)
+    finally:
+        root.removeHandler(handler)
+    if handler.records:
+        outcome = _with_warnings(outcome, handler.records)
+    return outcome
+
+
+# ----------------------------------------------------------------------------------------------------
+# the client side
+# ----------------------------------------------------------------------------------------------------
+
+
+def _start_local_cluster(n_workers: int) -> Any:
+    import dask
+    from distributed import LocalCluster
+
+    env = {var: "1" for var in THREAD_ENV_VARS}
+    # allowed-failures 0: a pair that kills its worker fails at once (as with the local pool);
+    # worker-saturation 1.0: a one-thread worker is sent one task at a time (a task starts when assigned)
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                          "distributed.scheduler.worker-saturation": 1.0}), warnings.catch_warnings():
+        # the scheduler's HTTP routes move off a busy port 8787 with a UserWarning: not our concern
+        warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+        return LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
+            env=env,
+        )
+
+
+def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
+    """(client, cluster or None)."""
+    from distributed import Client
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+        except Exception as exc:  # noqa: BLE001 - OSError, TimeoutError, ValueError (bad address)
+            raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {_exc_message(exc)}") from None
+        logger.info("connected to the dask scheduler at %s", scheduler)
+        return client, None
+    try:
+        cluster = _start_local_cluster(n_workers)
+    except Exception as exc:  # noqa: BLE001
+        raise BatchError(f"cannot start a dask LocalCluster: {_exc_message(exc)}") from None
+    try:
+        client = Client(cluster, set_as_default=False)
+    except BaseException:
+        cluster.close()
+        raise
+    logger.info("started a dask LocalCluster with %d worker processes at %s", n_workers, cluster.scheduler_address)
+    return client, cluster
+
+
+class _InFlight:
+    __slots__ = ("spec", "seed", "submitted", "started", "worker")
+
+    def __init__(self, spec: Any, seed: int) -> None:
+        self.spec = spec
+        self.seed = seed
+        self.submitted = time.monotonic()
+        self.started: float | None = None
+        self.worker: str | None = None
+
+    def deadline(self, time_limit_s: float) -> float:
+        if self.started is None:  # waiting for a worker (e.g. Slurm jobs still queued): no limit yet
+            return math.inf
+        return self.started + time_limit_s
+
+    def runtime(self) -> float:
+        return time.monotonic() - (self.started if self.started is not None else self.submitted)
+
+
+def _killed_message(exc: BaseException) -> str:
+    worker = getattr(getattr(exc, "last_worker", None), "address", None)
+    attempts = getattr(exc, "allowed_failures", None)
+    where = f"dask worker {worker}" if worker else "its dask worker"
+    tries = f"; {attempts + 1} attempts" if isinstance(attempts, int) and attempts > 0 else ""
+    return f"worker died ({where} was lost while running the pair{tries})"
+
+
+def _killed_worker_address(future: Any) -> str | None:
+    """The address of the last worker of a future that failed with ``KilledWorker``, else None."""
+    if future.status != "error":
+        return None
+    from distributed import KilledWorker
+
+    try:
+        exc = future.exception()
+    except Exception:  # noqa: BLE001
+        return None
+    if isinstance(exc, KilledWorker):
+        return getattr(exc.last_worker, "address", None)
+    return None
+
+
+def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
+    """The outcome of a completed future; a task error becomes a failed outcome."""
+    from distributed import KilledWorker
+
+    status = future.status
+    if status == "finished":
+        try:
+            outcome = future.result()
+        except Exception as exc:  # noqa: BLE001 - e.g. the result cannot be deserialised
+            return _failed(job.spec, job.seed, f"bad result from worker: {_exc_message(exc)}", "worker", job.runtime())
+        if not isinstance(outcome, PairOutcome):
+            return _failed(job.spec, job.seed, f"bad result from worker: {type(outcome).__name__}", "worker",
+                           job.runtime())
+        return outcome
+    if status == "error":
+        try:
+            exc = future.exception()
+        except Exception as err:  # noqa: BLE001
+            exc = err
+        if isinstance(exc, KilledWorker):
+            return _failed(job.spec, job.seed, _killed_message(exc), "worker", job.runtime())
+        return _failed(job.spec, job.seed, f"task failed on its dask worker: {_exc_message(exc)}", "worker",
+                       job.runtime())
+    return _failed(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
+
+
+def _n_slots(client: Any) -> int:
+    """Worker threads of the cluster (at least 1)."""
+    try:
+        return max(1, sum(int(n) for n in client.nthreads().values()))
+    except Exception:  # noqa: BLE001
+        return 1
+
+
+def _check_connected(client: Any, scheduler: str | None) -> None:
+    if client.status not in ("running", "connecting", "newly-created"):
+        where = scheduler or "the LocalCluster"
+        raise BatchError(
+            f"lost the connection to the dask scheduler ({where}, client {client.status}); the finished pairs "
+            "are saved: rerun with --resume to finish"
+        )
+
+
+def dask_outcomes(
+    tasks: Sequence[tuple[Any, int]],
+    config: Config,
+    n_workers: int,
+    register_ref: str | None,
+    time_limit_s: float,
+    *,
+    scheduler: str | None = None,
+    snapshots: bool = False,
+) -> Iterator[PairOutcome]:
+    """Run ``(spec, seed)`` tasks on a dask cluster; yield the outcomes as the futures complete."""
+    check_available()
+    from distributed import wait
+
+    client, cluster = _connect(scheduler, max(1, min(n_workers, len(tasks))))
+    pending: deque[tuple[Any, int]] = deque(tasks)
+    inflight: dict[Any, _InFlight] = {}
+    run_id = uuid.uuid4().hex[:8]
+    waiting_logged = False
+    closing = threading.Event()
+    killed_workers: set[str] = set()  # workers gctr replaced because a pair timed out
+    resubmits: dict[str, int] = {}
+    n_submitted = 0
+    start_topic = f"gctr-start-{run_id}"
+    starts: dict[str, tuple[float, str]] = {}  # task key -> (monotonic time it started, worker)
+
+    def on_start(event: Any) -> None:  # runs in the client's event-loop thread
+        try:
+            _, msg = event
+            starts[str(msg["key"])] = (time.monotonic(), str(msg.get("worker") or ""))
+        except Exception:  # noqa: BLE001
+            pass
+
+    try:
+        try:
+            client.subscribe_topic(start_topic, on_start)
+        except Exception as exc:  # noqa: BLE001
+            logger.warning("cannot follow task starts (%s): the per-pair time limit is not enforced",
+                           _exc_message(exc))
+        try:
+            client.register_plugin(GctrWorkerSetup(config, register_ref, snapshots), name=PLUGIN_NAME)
+        except Exception as exc:  # noqa: BLE001 - typically: gctr is not installed on the workers
+            raise BatchError(
+                f"the dask workers cannot set up gctr ({_exc_message(exc)}); every worker needs the same "
+                f"Python environment as this machine, with gctr-cli installed ({INSTALL_HINT})"
+            ) from None
+        while pending or inflight:
+            _check_connected(client, scheduler)
+            slots = _n_slots(client)
+            while pending and len(inflight) < slots:
+                spec, seed = pending.popleft()
+                n_submitted += 1  # unique keys, also for a resubmitted pair
+                future = client.submit(run_task, spec, seed, config, register_ref, snapshots, start_topic,
+                                       key=f"gctr-{run_id}-{n_submitted}-{spec.pair_id}", pure=False, retries=0)
+                inflight[future] = _InFlight(spec, seed)
+
+            _track_starts(starts, inflight)
+            now = time.monotonic()
+            next_deadline = min(job.deadline(time_limit_s) for job in inflight.values())
+            timeout = min(POLL_S, max(0.0, next_deadline - now) + 0.01)
+            try:
+                with client.as_current():  # `wait` uses the current client; ours is not made the default
+                    done, _ = wait(list(inflight), timeout=timeout, return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                done = set()
+            for future in [f for f in inflight if f in done]:  # submission order among the finished
+                if future.status not in ("finished", "error"):
+                    _check_connected(client, scheduler)  # cancelled because the scheduler is gone?
+                job = inflight.pop(future)
+                starts.pop(future.key, None)
+                lost_on = _killed_worker_address(future)
+                outcome = _outcome_of(future, job)
+                future.release()
+                if lost_on in killed_workers and resubmits.get(job.spec.pair_id, 0) < MAX_RESUBMITS:
+                    # an innocent pair that shared the worker of a timed-out one: run it again
+                    resubmits[job.spec.pair_id] = resubmits.get(job.spec.pair_id, 0) + 1
+                    logger.info("pair %s: its worker was replaced (another pair timed out); resubmitting",
+                                job.spec.pair_id)
+                    pending.appendleft((job.spec, job.seed))
+                    continue
+                yield outcome
+            if not inflight:
+                continue
+
+            _track_starts(starts, inflight)
+            if not any(job.started is not None for job in inflight.values()):
+                if not waiting_logged and time.monotonic() - min(j.submitted for j in inflight.values()) > 10:
+                    logger.info("waiting for dask workers (%d threads known)", slots if slots > 1 else 0)
+                    waiting_logged = True
+            now = time.monotonic()
+            for future, job in list(inflight.items()):
+                if future.done() or now < job.deadline(time_limit_s):
+                    continue
+                del inflight[future]
+                starts.pop(future.key, None)
+                runtime = job.runtime()
+                future.cancel()
+                if job.worker:
+                    killed_workers.add(job.worker)
+                    if not (cluster is not None and _kill_local_worker(cluster, job.worker)):
+                        # in the background: the nanny takes seconds to stop and respawn a busy worker
+                        threading.Thread(target=_restart_worker, args=(client, job.worker, job.spec.pair_id, closing),
+                                         name="gctr-restart-worker", daemon=True).start()
+                yield _failed(job.spec, job.seed, f"timed out after {time_limit_s:g} s", "timeout", runtime)
+    finally:
+        for future in inflight:
+            with contextlib.suppress(Exception):
+                future.cancel()
+        closing.set()
+        with contextlib.suppress(Exception):
+            client.unsubscribe_topic(start_topic)
+        with contextlib.suppress(Exception):
+            client.close(timeout=10)
+        if cluster is not None:
+            with contextlib.suppress(Exception):
+                cluster.close(timeout=10)
+
+
+def _track_starts(starts: dict[str, tuple[float, str]], inflight: dict[Any, _InFlight]) -> None:
+    """Start the clock of the in-flight tasks that announced their start (see :func:`run_task`).
+
+    A task that starts again (rescheduled after its worker was lost) gets a fresh clock.
+    """
+    for future, job in inflight.items():
+        seen = starts.get(future.key)
+        if seen is not None and (job.started is None or seen[0] > job.started):
+            job.started, job.worker = seen
+
+
+def _kill_local_worker(cluster: Any, worker: str) -> bool:
+    """SIGKILL a worker process of our own LocalCluster (its nanny starts a fresh one). True if done."""
+    import signal
+
+    for nanny in list(getattr(cluster, "workers", {}).values()):
+        if getattr(nanny, "worker_address", None) == worker and getattr(nanny, "pid", None):
+            try:
+                os.kill(nanny.pid, signal.SIGKILL)
+            except OSError:
+                return False
+            return True
+    return False
+
+
+def _restart_worker(client: Any, worker: str, pair_id: str, closing: threading.Event) -> None:
+    """Stop a timed-out pair for good: restart its worker through the nanny (best effort).
+
+    Runs in a background thread; a restart still under way when the batch ends is abandoned (our own
+    LocalCluster is closed anyway; an external scheduler finishes it on its side).
+    """
+    try:
+        result = client.restart_workers([worker], timeout=RESTART_TIMEOUT_S, raise_for_error=False)
+    except Exception as exc:  # noqa: BLE001
+        if closing.is_set():
+            return
+        logger.warning("pair %s timed out; could not restart dask worker %s (%s): it keeps computing until the "
+                       "pair ends", pair_id, worker, _exc_message(exc))
+        return
+    status = result.get(worker) if isinstance(result, dict) else None
+    if status not in (None, "OK"):
+        logger.warning("pair %s timed out; restarting dask worker %s: %s", pair_id, worker, status)

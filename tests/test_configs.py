@@ -1,0 +1,25 @@
+"""The shipped configs: valid, and configs/default.yaml is exactly the built-in defaults."""
+
+from pathlib import Path
+
+import pytest
+
+from gctr_cli.config import Config, load_config
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def test_default_yaml_matches_the_built_in_defaults():
+    assert load_config(CONFIGS / "default.yaml") == Config()
+
+
+@pytest.mark.parametrize("name", ["default.yaml", "fast.yaml", "accurate.yaml"])
+def test_shipped_config_is_valid(name):
+    cfg = load_config(CONFIGS / name)
+    assert cfg.method == "gctr"
+
+
+def test_fast_is_lighter_and_accurate_heavier_than_default():
+    d, f, a = (load_config(CONFIGS / n).engine for n in ("default.yaml", "fast.yaml", "accurate.yaml"))
+    assert f.triplets.n_target < d.triplets.n_target < a.triplets.n_target
+    assert f.ransac.iterations < d.ransac.iterations < a.ransac.iterations

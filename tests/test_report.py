@@ -1,0 +1,238 @@
+"""OUTDIR/report.html: contents, self-containment, resume, and a render in a real headless browser."""
+
+from __future__ import annotations
+
+import functools
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+import fake_engine
+from conftest import read_csv
+from gctr_cli import batch, cli
+from gctr_cli.batch import run_batch
+from gctr_cli.report import COLUMNS, render_report
+
+
+class _Page(HTMLParser):
+    """Collects the pairs table (rows in document order) and every URL-bearing attribute."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rows: list[dict[str, str]] = []
+        self.cells: list[list[str]] = []
+        self.urls: list[str] = []
+        self.table_attrs: dict[str, str] = {}
+        self.headers: list[str] = []
+        self.ids: set[str] = set()
+        self._in_pairs = self._in_body = self._in_cell = False
+        self._text = ""
+
+    def handle_starttag(self, tag, attrs):
+        a = {k: v or "" for k, v in attrs}
+        if "id" in a:
+            self.ids.add(a["id"])
+        for k in ("src", "href"):
+            if k in a:
+                self.urls.append(a[k])
+        if tag == "table" and a.get("id") == "pairs":
+            self.table_attrs = a
+            self._in_pairs = True
+        if tag == "th" and "data-key" in a:
+            self.headers.append(a["data-key"])
+        if tag == "tbody" and self._in_pairs:
+            self._in_body = True
+        if self._in_body and tag == "tr":
+            self.rows.append(a)
+            self.cells.append([])
+        if self._in_body and tag == "td":
+            self._in_cell, self._text = True, ""
+
+    def handle_endtag(self, tag):
+        if tag == "tbody":
+            self._in_body = False
+        if tag == "table":
+            self._in_pairs = False
+        if tag == "td" and self._in_cell:
+            self.cells[-1].append(self._text.strip())
+            self._in_cell = False
+
+    def handle_data(self, data):
+        if self._in_cell:
+            self._text += data
+
+
+def parse(text: str) -> _Page:
+    page = _Page()
+    page.feed(text)
+    return page
+
+
+def column(page: _Page, key: str) -> list[str]:
+    i = 1 + [c[0] for c in COLUMNS].index(key)  # +1: the snapshot column
+    return [cells[i] for cells in page.cells]
+
+
+def assert_self_contained(text: str, page: _Page) -> None:
+    assert not re.search(r"(?i)\b(https?|ftp|wss?):", text), "the report must not reference the network"
+    assert "//" not in "".join(u for u in page.urls if not u.startswith("data:"))
+    assert "<link" not in text and "@import" not in text and "<script src" not in text
+    for url in page.urls:
+        assert url.startswith("snapshots/") or url.startswith("data:"), url
+
+
+@pytest.fixture
+def failing_set(four_pairs):
+    ds = four_pairs
+    ds.add_pair("raises", n=fake_engine.RAISE_N)
+    (ds.root / "bad").mkdir()
+    (ds.root / "bad" / "x<script>.ply").write_bytes(b"")
+    ds.add_raw("html_in_message", "bad/x<script>.ply", ds.rows[0]["target"], ds.rows[0]["gt"])
+    return ds
+
+
+def test_report_has_every_pair_summary_and_plot(failing_set, fast_config, tmp_path):
+    out = tmp_path / "out"
+    summary = run_batch(failing_set.specs(), fast_config, out, workers=2, register_fn=fake_engine.register)
+    text = (out / "report.html").read_text()
+    page = parse(text)
+    ids = [r["pair_id"] for r in read_csv(out / "transforms.csv")[1]]
+    assert sorted(r["data-pair"] for r in page.rows) == sorted(ids) and len(page.rows) == 7
+    assert page.headers == [c[0] for c in COLUMNS]
+    status = dict(zip(column(page, "pair_id"), column(page, "status")))
+    assert status["raises"] == "failed" and status["ply_ply"] == "ok"
+    msgs = dict(zip(column(page, "pair_id"), column(page, "message")))
+    assert msgs["raises"] == "ValueError: degenerate input: the source cloud is planar"
+    assert "x<script>.ply: file is empty" in msgs["html_in_message"]  # shown as text...
+    assert "x&lt;script&gt;.ply" in text and "x<script>" not in text  # ...escaped in the source
+    # summary cards and the error distribution (pairs with ground truth exist)
+    assert f'<div class="v">{summary.n_pairs}</div><div class="k">pairs</div>' in text
+    assert '<div class="v">2</div><div class="k">failed</div>' in text
+    assert f"success ({summary.n_success}/{summary.n_gt} with ground truth)" in text
+    assert "error-plot" in page.ids and text.count("<svg") == 3
+    assert "snapshots/" not in text  # no snapshots were asked for
+    assert_self_contained(text, page)
+    assert not list(out.glob(".report*"))  # written atomically, no temporary left
+
+
+def test_report_without_ground_truth_and_after_resume(dataset, fast_config, tmp_path):
+    for i in range(4):
+        dataset.add_pair(f"p{i}", with_gt=False)
+    out = tmp_path / "out"
+    rows = list(dataset.rows)
+    dataset.rows = rows[:2]
+    run_batch(dataset.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    assert len(parse((out / "report.html").read_text()).rows) == 2
+    dataset.rows = rows
+    run_batch(dataset.specs(), fast_config, out, workers=1, register_fn=fake_engine.register, resume=True,
+              snapshots=True)
+    text = (out / "report.html").read_text()
+    page = parse(text)
+    assert sorted(r["data-pair"] for r in page.rows) == ["p0", "p1", "p2", "p3"]  # earlier rows too
+    assert "error-plot" not in page.ids and "<svg" not in text
+    assert "2 pairs were done by an earlier run" in text
+    # thumbnails link to the snapshots of the pairs that have one (only the resumed run made them)
+    thumbs = sorted(u for u in page.urls if u.startswith("snapshots/"))
+    assert thumbs == ["snapshots/p2.png"] * 2 + ["snapshots/p3.png"] * 2  # <a href> and <img src>
+    assert all((out / u).exists() for u in thumbs)
+    assert_self_contained(text, page)
+
+
+def test_cli_prints_the_report_path(four_pairs, tmp_path, monkeypatch):
+    monkeypatch.setattr(batch, "run_batch", functools.partial(batch.run_batch, register_fn=fake_engine.register))
+    out = tmp_path / "out"
+    res = CliRunner().invoke(cli.main, ["batch", str(four_pairs.manifest()), "-o", str(out), "-j", "1"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    assert f"report: {out}/report.html" in res.stdout
+
+
+def test_report_problems_never_fail_the_batch(four_pairs, fast_config, tmp_path, monkeypatch, caplog):
+    import gctr_cli.report
+
+    def broken(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(gctr_cli.report, "write_report", broken)
+    summary = run_batch(four_pairs.specs(), fast_config, tmp_path / "out", workers=1, register_fn=fake_engine.register)
+    assert summary.n_ok == 5
+    assert "could not write" in caplog.text and "disk full" in caplog.text
+
+
+def test_render_report_of_a_folder(four_pairs, fast_config, tmp_path):
+    """``render_report`` works from the files alone (e.g. on a copied results folder)."""
+    out = tmp_path / "out"
+    run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    page = parse(render_report(out))
+    assert len(page.rows) == 5
+
+
+# ----------------------------------------------------------------------------------------------------
+# a real browser
+# ----------------------------------------------------------------------------------------------------
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--disable-dev-shm-usage", "--mute-audio"]
+
+
+def chromium(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    profile = tmp_path / "chromium-profile"
+    return subprocess.run([CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", *args],
+                          capture_output=True, text=True, timeout=90, cwd=tmp_path)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it: make browser-deps)")
+def test_report_renders_and_sorts_in_headless_chromium(failing_set, fast_config, tmp_path):
+    pytest.importorskip("PIL.Image")
+    import numpy as np
+    from PIL import Image
+
+    out = tmp_path / "out"
+    run_batch(failing_set.specs(), fast_config, out, workers=2, register_fn=fake_engine.register, snapshots=True)
+    url = (out / "report.html").resolve().as_uri()
+
+    # 1. a screenshot: the page renders (not blank), with the plot and the table
+    shot = tmp_path / "report.png"
+    res = chromium(tmp_path, f"--screenshot={shot}", "--window-size=1200,900", "--hide-scrollbars", url)
+    assert shot.exists(), res.stderr[-2000:]
+    with Image.open(shot) as im:
+        assert im.size == (1200, 900)
+        img = np.asarray(im.convert("RGB")).astype(int)
+    assert (img.min(-1) < 200).mean() > 0.02  # text, cards, plot lines
+    saturated = img.max(-1) - img.min(-1) > 60
+    assert saturated.sum() > 500  # coloured figures (green/red counts, blue curves, red thresholds)
+
+    # 2. the DOM after the script ran: every row is there; the fragment sorts and filters
+    res = chromium(tmp_path, "--dump-dom", url + "#sort=-runtime_s")
+    page = parse(res.stdout)
+    assert page.table_attrs.get("data-ready") == "true", res.stderr[-2000:]
+    assert page.table_attrs.get("data-sort") == "-runtime_s"
+    assert len(page.rows) == 7
+    times = [float(t) for t in column(page, "runtime_s")]
+    assert times == sorted(times, reverse=True)
+
+    res = chromium(tmp_path, "--dump-dom", url + "#sort=pair_id&status=failed")
+    page = parse(res.stdout)
+    assert page.table_attrs.get("data-sort") == "pair_id"
+    assert column(page, "pair_id") == sorted(column(page, "pair_id"), key=str.lower)
+    hidden = {r["data-pair"] for r in page.rows if "hidden" in r.get("class", "").split()}
+    visible = {r["data-pair"] for r in page.rows} - hidden
+    assert visible == {"raises", "html_in_message"}
+
+    # rotation error, descending: empty cells (failed pairs) stay last
+    res = chromium(tmp_path, "--dump-dom", url + "#sort=-rot_err_deg")
+    page = parse(res.stdout)
+    errs = column(page, "rot_err_deg")
+    filled = [e for e in errs if e]
+    assert errs[: len(filled)] == filled and len(filled) == 4
+    assert [float(e) for e in filled] == sorted((float(e) for e in filled), reverse=True)
+    # the snapshot thumbnails are there and point to existing files
+    thumbs = {u for u in page.urls if u.startswith("snapshots/")}
+    assert len(thumbs) == 7 and all((out / u).exists() for u in thumbs)
