@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from gctr_cli.config import Config, ConfigError, config_to_yaml, load_config
+from gctr_cli.fsutil import THREAD_ENV_VARS, atomic_write
 
 logger = logging.getLogger(__name__)
 
@@ -96,15 +97,6 @@ LOCK_NAME = ".gctr.lock"
 #: executors :func:`run_batch` can run the pairs on
 EXECUTORS = ("local", "dask")
 
-#: environment variables that cap native thread pools; set to 1 in every worker before numpy loads
-THREAD_ENV_VARS = (
-    "OMP_NUM_THREADS",
-    "OPENBLAS_NUM_THREADS",
-    "MKL_NUM_THREADS",
-    "NUMEXPR_NUM_THREADS",
-    "VECLIB_MAXIMUM_THREADS",
-    "BLIS_NUM_THREADS",
-)
 
 RegisterFn = Callable[..., Any]
 
@@ -826,15 +818,6 @@ def _read_rows(path: Path, header: Sequence[str]) -> list[dict[str, str]]:
         return [dict(zip(header, row)) for row in reader if row]
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w", encoding="utf-8", newline="") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
 def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
     if isinstance(data, dict):
         out: dict[str, Any] = {}
@@ -1146,7 +1129,7 @@ def _prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
     if len(kept) != len(err_rows):
         logger.info("%s: dropped %d rows of unfinished pairs", errors, len(err_rows) - len(kept))
         text = _csv_line(ERRORS_COLUMNS) + "".join(_csv_line(r[c] for c in ERRORS_COLUMNS) for r in kept.values())
-        _atomic_write_text(errors, text)
+        atomic_write(errors, text)
     return done
 
 
@@ -1272,7 +1255,7 @@ def run_batch(
         todo = [p for p in pairs if p.pair_id not in done]
         n_resumed = len(pairs) - len(todo)
         resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
-        _atomic_write_text(outdir / CONFIG_FILE, config_to_yaml(resolved))
+        atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
         if snapshots:
             (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
         if n_resumed:

@@ -18,6 +18,7 @@ from typing import Any, Iterator, NoReturn
 import click
 
 from gctr_cli import __version__
+from gctr_cli.fsutil import THREAD_ENV_VARS
 
 logger = logging.getLogger("gctr_cli")
 
@@ -25,17 +26,6 @@ EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_BELOW_MIN_SUCCESS = 3
-
-#: native thread pools capped to one thread (same list as ``gctr_cli.batch.THREAD_ENV_VARS``, repeated
-#: here so that setting them does not import numpy first)
-THREAD_ENV_VARS = (
-    "OMP_NUM_THREADS",
-    "OPENBLAS_NUM_THREADS",
-    "MKL_NUM_THREADS",
-    "NUMEXPR_NUM_THREADS",
-    "VECLIB_MAXIMUM_THREADS",
-    "BLIS_NUM_THREADS",
-)
 
 EXIT_CODES_HELP = """\b
 Exit codes:

@@ -26,16 +26,16 @@ from __future__ import annotations
 
 import io as _stdio
 import logging
-import os
 import re
 import struct
-import uuid
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from gctr_cli.fsutil import atomic_write
 
 __all__ = [
     "MatrixError",
@@ -251,22 +251,10 @@ def _check_readable_file(path: Path, err: type[ValueError]) -> None:
 
 
 def _atomic_write_bytes(path: Path, data: bytes, err: type[ValueError]) -> None:
-    """Write ``data`` to a temporary file next to ``path`` and ``os.replace`` it into place."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    """Write ``data`` atomically (:func:`gctr_cli.fsutil.atomic_write`); errors become ``err``."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # os.open with 0o666 honours the umask (tempfile would give 0600 files).
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        atomic_write(path, data)
     except OSError as exc:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
         raise err(f"{path}: cannot write file ({exc.strerror or exc})") from exc
 
 

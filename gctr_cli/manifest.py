@@ -15,13 +15,12 @@ from __future__ import annotations
 import csv
 import io
 import logging
-import os
-import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from gctr_cli.io import SUPPORTED_EXTENSIONS
+from gctr_cli.fsutil import atomic_write
 
 __all__ = ["ManifestError", "PairSpec", "build_manifest", "read_manifest", "write_manifest"]
 
@@ -201,19 +200,9 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
             row.append(_format_path(p.gt, base) if p.gt is not None else "")
         writer.writerow(row)
 
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(buf.getvalue())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        atomic_write(path, buf.getvalue())
     except OSError as exc:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
         raise ManifestError(f"{path}: cannot write manifest ({exc.strerror or exc})") from exc
 
 

@@ -16,12 +16,13 @@ import csv
 import datetime as _dt
 import html
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 from urllib.parse import quote
+
+from gctr_cli.fsutil import atomic_write
 
 __all__ = ["COLUMNS", "render_report", "write_report"]
 
@@ -428,14 +429,5 @@ def write_report(outdir: str | Path, *, summary: Any = None, config: Any = None)
     outdir = Path(outdir)
     text = render_report(outdir, summary=summary, config=config)
     path = outdir / "report.html"
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write(path, text)
     return path

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import io
 import logging
-import os
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from gctr_cli.fsutil import atomic_write
 
 __all__ = [
     "MAX_POINTS",
@@ -161,15 +162,4 @@ def snapshot_of_outcome(outcome: Any, source: np.ndarray | None, target: np.ndar
 
 def write_png(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temporary file, fsync, rename); parents are created."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write(path, data)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gctr_cli import fsutil
 from gctr_cli import io as gio
 from gctr_cli.io import (
     SUPPORTED_EXTENSIONS,
@@ -662,7 +663,7 @@ def test_save_is_atomic(tmp_path, cloud, monkeypatch):
     def boom(src, dst):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(gio.os, "replace", boom)
+    monkeypatch.setattr(fsutil.os, "replace", boom)
     with pytest.raises(PointCloudError) as ei:
         save_point_cloud(path, cloud[:50])
     assert_error(ei, path, "cannot write", "No space left")
