@@ -12,7 +12,7 @@ help:
 	@echo "make demo          set up and run gctr batch on a small cross-source set (results in $(DEMO)/)"
 	@echo "make test          set up and run the test suite"
 	@echo "make bench-engine  full engine benchmark -> bench/ENGINE.md (tens of minutes)"
-	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the same pairs -> bench/RESULTS.md (~30 min)"
+	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the same pairs -> bench/RESULTS.md (~15 min)"
 	@echo "make bench-quick   the same on 15 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
 
 # Open3D's wheel links against libusb-1.0; install it from Debian's packages when it is missing.

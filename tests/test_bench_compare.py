@@ -1,0 +1,144 @@
+"""The comparison benchmark (data_scripts/bench_compare.py): statistics, goals, report and plots from a
+hand-made run, and a tiny real end-to-end run (2 methods, 1 level, 1 small pair)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+from data_scripts import bench_compare as bc
+from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _write(path: Path, header, rows) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(header)
+        w.writerows(rows)
+
+
+# errors of each (method, level): list of (rot_err_deg, trans_err_rel, scale_err, runtime_s) or None = failed
+FAKE = {
+    ("gctr", "easy"): [(0.1, 0.001, 0.002, 1.0), (0.2, 0.002, 0.001, 1.2)],
+    ("gctr", "cross"): [(0.3, 0.004, 0.01, 1.5), (40.0, 0.3, 0.2, 1.6)],
+    ("fgr", "easy"): [(0.2, 0.002, 0.003, 0.5), (0.1, 0.001, 0.002, 0.7)],
+    ("fgr", "cross"): [(90.0, 0.5, 0.4, 0.8), None],
+}
+
+
+def make_fake_run(work: Path) -> list[bc.BatchRun]:
+    data = work / "data"
+    runs = []
+    for level in ("easy", "cross"):
+        _write(data / level / "pairs.csv", ["pair_id", "source", "target", "gt", "model", "level", "scale_gt",
+                                            "overlap_src", "overlap_tgt"],
+               [[f"{level}_{k}", "s.ply", "t.ply", "g.txt", "bunny", level, "1.5", "0.8", "0.7"] for k in range(2)])
+    for (method, level), pairs in FAKE.items():
+        out = work / "results" / method / level
+        trows, erows = [], []
+        for k, e in enumerate(pairs):
+            pid = f"{level}_{k}"
+            if e is None:
+                trows.append([pid, "s.ply", "t.ply", "failed", "too weak evidence", ""] + [""] * 16 + ["", "", "2.0", "1"])
+                continue
+            rot, tr, sc, t = e
+            trows.append([pid, "s.ply", "t.ply", "ok", "", "1.5"] + ["0"] * 16 + ["0.9", "0.01", repr(t), "1"])
+            ok = rot < 5 and tr < 0.05 and sc < 0.05
+            erows.append([pid, repr(rot), repr(tr * 10), repr(tr), repr(sc), repr(rot / 10), "true" if ok else "false"])
+        _write(out / "transforms.csv", TRANSFORMS_COLUMNS, trows)
+        _write(out / "tm_errors.csv", ERRORS_COLUMNS, erows)
+        runs.append(bc.BatchRun(method=method, level=level, n_pairs=2, command=["gctr", "batch"], exit_code=0,
+                                wall_s=5.0, cpu_s=4.0, peak_rss_mb=123.0 if method == "gctr" else 270.0))
+    return runs
+
+
+def fake_meta(work: Path, methods=("gctr", "fgr"), levels=("easy", "cross")) -> dict:
+    settings = bc.Settings(mode="quick", pairs_per_model=1, seed=0, workers=1, methods=methods, levels=levels,
+                           profile_pairs=0)
+    from dataclasses import asdict
+
+    return {
+        "command": "python -m data_scripts.bench_compare --quick",
+        "date": "2026-01-01 00:00 UTC",
+        "settings": {**asdict(settings), "methods": list(methods), "levels": list(levels)},
+        "machine": bc.machine_info(),
+        "load_samples": [0.5, 0.7],
+        "generate_command": "python -m data_scripts.make_benchmark generate ...",
+        "success_thresholds": {"rotation_deg": 5.0, "translation_rel": 0.05, "scale": 0.05},
+        "baseline_rss_mb": {"gctr": 100.0, "open3d": 250.0},
+        "code_state": "commit abc",
+        "total_wall_s": 60.0,
+        "work_rel": str(work),
+    }
+
+
+def test_report_from_a_hand_made_run(tmp_path):
+    work = tmp_path / "work"
+    runs = make_fake_run(work)
+    out = tmp_path / "report" / "RESULTS.md"
+    result = bc.write_report(fake_meta(work), runs, work, work / "data", out, profile={})
+
+    stats = result["stats"]
+    assert stats[("gctr", "easy")]["success"] == 2 and stats[("gctr", "cross")]["success"] == 1
+    assert stats[("fgr", "cross")]["success"] == 0 and stats[("fgr", "cross")]["ok"] == 1
+    # medians over all pairs, a failed pair counting as an infinite error
+    assert stats[("fgr", "cross")]["rot"] == math.inf
+    assert stats[("gctr", "cross")]["rot"] == pytest.approx(20.15)
+    assert stats[("gctr", "easy")]["time_med"] == pytest.approx(1.1)
+    assert stats[("gctr", "all")]["pairs"] == 4
+    assert stats[("gctr", "easy")]["ln_tm"] == pytest.approx((math.log(0.01) + math.log(0.02)) / 2)  # median of ln
+
+    goals = {g["goal"].split(":")[0]: g for g in result["goals"]}
+    assert goals["`easy`"]["met"] is True  # 2/2 vs 2/2: ≥ holds
+    assert goals["`cross`"]["met"] is True  # 1/2 vs 0/2: strictly higher
+    time_goal = next(g for g in result["goals"] if "median time" in g["goal"])
+    assert time_goal["met"] is False and time_goal["fastest"] == "fgr"  # 1.35 s vs 0.7 s
+
+    text = out.read_text()
+    assert "Command: `python -m data_scripts.bench_compare --quick`" in text
+    assert "cores" in text and "Load average" in text
+    assert "| **gctr** | easy | 2 | 2/2 (100%) |" in text
+    assert "| fgr | cross | 2 | 0/2 (0%) | ∞ |" in text
+    assert "| 123 |" in text and "| 270 |" in text  # peak memory column
+    assert "**1 of 3 goals are not met.**" in text
+    assert "Not met — gctr median time" in text
+    assert "## gctr's unsuccessful pairs" in text and "cross_1" in text
+    assert "GCTR (paper)" in text  # Table 1 beside ours
+    for png in (bc.CDF_PNG, bc.TIME_PNG):
+        assert f"]({png})" in text
+        assert (out.parent / png).read_bytes()[:8] == PNG_MAGIC
+    rows = list(csv.DictReader(open(work / "rows.csv")))
+    assert len(rows) == 8 and {r["method"] for r in rows} == {"gctr", "fgr"}
+
+
+def test_tiny_end_to_end_run_and_report_only(tmp_path):
+    """The real pipeline: generator -> gctr batch per method and level (measured) -> report."""
+    work, out = tmp_path / "work", tmp_path / "out" / "RESULTS.md"
+    argv = ["--quick", "--methods", "gctr,icp", "--levels", "easy", "--models", str(REPO / "data/models/bunny.ply"),
+            "--pairs-per-model", "1", "--n-source", "2000", "-j", "1", "--profile-pairs", "1",
+            "--work", str(work), "--out", str(out)]
+    assert bc.main(argv) == 0
+    text = out.read_text()
+    assert "| **gctr** | easy | 1 |" in text and "| icp | easy | 1 |" in text
+    assert "--levels easy" in text and "--n-source 2000" in text  # the generator command
+    assert "## Where the time goes" in text and "**gctr** (total" in text
+    for png in (bc.CDF_PNG, bc.TIME_PNG):
+        assert (out.parent / png).read_bytes()[:8] == PNG_MAGIC
+    for method in ("gctr", "icp"):
+        _, = list(csv.DictReader(open(work / "results" / method / "easy" / "transforms.csv")))
+        assert (work / "configs" / f"{method}.yaml").read_text().startswith(f"method: {method}")
+    saved = json.loads((work / "run.json").read_text())
+    assert [(r["method"], r["level"]) for r in saved["runs"]] == [("gctr", "easy"), ("icp", "easy")]
+    assert all(r["peak_rss_mb"] > 30 and r["exit_code"] in (0, 1) for r in saved["runs"])
+    # the report can be re-rendered from the saved run, identically
+    out.unlink()
+    assert bc.main([*argv, "--report-only"]) == 0
+    assert out.read_text() == text
