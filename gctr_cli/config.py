@@ -29,6 +29,7 @@ class PreprocessConfig(_Strict):
 
     max_points: int = Field(6000, ge=100, description="working size of each cloud (voxel downsampling)")
     normal_neighbours: int = Field(30, ge=5, le=100, description="k of the kNN used for PCA normals")
+    drop_isolated: bool = Field(True, description="drop voxels no supervoxel reaches (outliers) before refinement and scoring")
 
 
 class SupervoxelConfig(_Strict):
@@ -46,8 +47,8 @@ class SupervoxelConfig(_Strict):
 class TripletConfig(_Strict):
     """Random wide-baseline triangles on the salient points."""
 
-    n_source: int = Field(2000, ge=10, description="source triangles per pair")
-    n_target: int = Field(40000, ge=10, description="target triangles per pair")
+    n_source: int = Field(1500, ge=10, description="source triangles per pair")
+    n_target: int = Field(25000, ge=10, description="target triangles per pair")
     min_edge_ratio: float = Field(0.5, gt=0, le=1, description="edges >= ratio * overlap-region diameter (sqrt(r))")
     min_angle_deg: float = Field(12.0, ge=0, lt=60, description="reject near-degenerate triangles")
 
@@ -63,15 +64,15 @@ class TensorConfig(_Strict):
 
 
 class PowerIterationConfig(_Strict):
-    iterations: int = Field(20, ge=1, le=1000)
+    iterations: int = Field(15, ge=1, le=1000)
     tol: float = Field(1e-6, gt=0)
     normalisation_rounds: int = Field(3, ge=0, le=50, description="row/column L2 normalisations per step")
 
 
 class RansacConfig(_Strict):
-    iterations: int = Field(2000, ge=1, description="hypotheses from the best-supported tensor entries")
-    random_samples: int = Field(1000, ge=0, description="extra hypotheses drawn from the soft assignment")
-    verify_top: int = Field(300, ge=1, description="best hypotheses re-ranked by dense symmetric fitness")
+    iterations: int = Field(1500, ge=1, description="hypotheses from the best-supported tensor entries")
+    random_samples: int = Field(750, ge=0, description="extra hypotheses drawn from the soft assignment")
+    verify_top: int = Field(200, ge=1, description="best hypotheses re-ranked by dense symmetric fitness")
     refine_fraction: float = Field(0.25, gt=0, le=1, description="share of hypotheses once a transform exists")
     candidates: int = Field(3, ge=1, le=10, description="targets per source point for the random samples")
     inlier_ratio: float = Field(0.05, gt=0, lt=1, description="salient inlier distance / robust diameter")

@@ -109,6 +109,12 @@ def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, ti
     sv = supervoxels(work, normals, voxel=cfg.supervoxel.voxel_ratio, seed_spacing=cfg.supervoxel.seed_ratio,
                      spatial_weight=cfg.supervoxel.spatial_weight, normal_weight=cfg.supervoxel.normal_weight,
                      iterations=cfg.supervoxel.iterations, min_voxels=cfg.supervoxel.min_voxels)
+    # Voxels that no supervoxel reached are isolated — typically outliers. Dropping them from the
+    # working cloud keeps outliers out of the refinement and the fitness (with 30% uniform
+    # outliers they otherwise pull scaled ICP's scale inwards).
+    surface = sv.labels >= 0
+    if cfg.preprocess.drop_isolated and surface.sum() >= max(50, len(work) // 4):
+        work, normals = work[surface], normals[surface]
     salient, salient_normals = sv.centroids, sv.normals
     if len(salient) > cfg.supervoxel.max_salient:
         keep = np.sort(np.argsort(-sv.sizes, kind="stable")[: cfg.supervoxel.max_salient])

@@ -17,8 +17,8 @@ from gctr_cli.engine.tensor import SparseTensor3, SparseVector
 def _normalise_rows_cols(x: np.ndarray, n1: int, n2: int, rounds: int) -> np.ndarray:
     m = x.reshape(n1, n2)
     for _ in range(rounds):
-        m = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
-        m = m / np.maximum(np.linalg.norm(m, axis=0, keepdims=True), 1e-300)
+        m = m / np.maximum(np.sqrt(np.einsum("ij,ij->i", m, m)), 1e-300)[:, None]
+        m = m / np.maximum(np.sqrt(np.einsum("ij,ij->j", m, m)), 1e-300)[None, :]
     return m.ravel()
 
 

@@ -85,11 +85,17 @@ def normalise(points: np.ndarray) -> NormalisedCloud:
     return NormalisedCloud(points=(points - centre) / size, centre=centre, size=size)
 
 
+def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
+    """One int64 key per point identifying its voxel (a 1-D key makes ``np.unique`` fast)."""
+    ijk = np.floor(points / size).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    dims = ijk.max(axis=0) + 1
+    return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+
+
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """Centroid of the points in each occupied voxel (equalises density across sensors)."""
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
+    _, inverse, counts = np.unique(voxel_keys(points, voxel), return_inverse=True, return_counts=True)
     out = np.empty((len(counts), 3))
     for d in range(3):
         out[:, d] = np.bincount(inverse, weights=points[:, d], minlength=len(counts)) / counts
@@ -111,8 +117,8 @@ def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
     """Unit normals from PCA of the k nearest neighbours (batched 3x3 eigen-decomposition)."""
     k = min(k, len(points))
     _, idx = cKDTree(points).query(points, k=k)
-    nbrs = points[idx]
-    centred = nbrs - nbrs.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred)
+    nbrs = points[idx] - points[:, None, :]  # local coordinates: better conditioned sums
+    mean = nbrs.mean(axis=1)
+    cov = np.einsum("nki,nkj->nij", nbrs, nbrs) / k - mean[:, :, None] * mean[:, None, :]
     _, vecs = np.linalg.eigh(cov)
     return vecs[:, :, 0]

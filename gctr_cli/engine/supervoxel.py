@@ -17,6 +17,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from gctr_cli.engine.preprocess import voxel_keys
+
 
 @dataclass(frozen=True)
 class Supervoxels:
@@ -59,8 +61,7 @@ def _initial_seeds(voxels: np.ndarray, seed_spacing: float, voxel: float) -> np.
     pts = voxels[eligible]
     cells = np.floor(pts / seed_spacing).astype(np.int64)
     dist = np.linalg.norm(pts - (cells + 0.5) * seed_spacing, axis=1)
-    _, cell_ids = np.unique(cells, axis=0, return_inverse=True)
-    _, seeds = _group_argmin(cell_ids.ravel(), dist)
+    _, seeds = _group_argmin(voxel_keys(pts, seed_spacing), dist)
     return eligible[seeds]
 
 
