@@ -27,7 +27,6 @@ Matrix convention (GUIDE §1): ``T = [[s R, t], [0 0 0 1]]`` maps the source ont
 from __future__ import annotations
 
 import csv
-import dataclasses
 import logging
 import zlib
 from dataclasses import dataclass

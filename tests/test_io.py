@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from gctr_cli import fsutil
-from gctr_cli import io as gio
 from gctr_cli.io import (
     SUPPORTED_EXTENSIONS,
     MatrixError,

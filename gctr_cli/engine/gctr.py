@@ -51,7 +51,7 @@ from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.similarity import apply, best_similarity, to_matrix
 from gctr_cli.engine.supervoxel import supervoxels
 from gctr_cli.engine.tensor import SparseTensor3, build_first_order, build_third_order, entry_scores, subset
-from gctr_cli.engine.triplets import diameter, sample_triangles
+from gctr_cli.engine.triplets import sample_triangles
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,6 @@ class _Prepared:
     salient: np.ndarray  # supervoxel centroids
     salient_normals: np.ndarray
     salient_tree: cKDTree
-    diameter: float  # diameter of the salient set
     grids: dict = field(default_factory=dict, compare=False)
 
     def grid(self, radius: float) -> OccupancyGrid:
@@ -121,7 +120,7 @@ def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, ti
         salient, salient_normals = salient[keep], salient_normals[keep]
     timer.add("supervoxels", t)
     return _Prepared(points=work, normals=normals, tree=cKDTree(work), salient=salient, salient_normals=salient_normals,
-                     salient_tree=cKDTree(salient), diameter=diameter(salient))
+                     salient_tree=cKDTree(salient))
 
 
 def _min_edges(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:

@@ -50,13 +50,3 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
     _, first = np.unique(key, return_index=True)
     tri = tri[np.sort(first)][:n]
     return canonical_order(points, tri)
-
-
-def diameter(points: np.ndarray) -> float:
-    """Largest extent of a point set, estimated via its principal axes (fast, rotation invariant)."""
-    if len(points) < 2:
-        return 0.0
-    centred = points - points.mean(axis=0)
-    _, _, vt = np.linalg.svd(centred, full_matrices=False)
-    proj = centred @ vt.T
-    return float(np.linalg.norm(proj.max(axis=0) - proj.min(axis=0)))
