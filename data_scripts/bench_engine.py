@@ -1,0 +1,823 @@
+"""Benchmark of the GCTR engine on the synthetic + real cross-source pairs (issue 2, "What must hold").
+
+    python -m data_scripts.bench_engine --levels easy,cross,hard,real --out bench/ENGINE.md
+    python -m data_scripts.bench_engine --levels cross,hard --set engine.refine.enabled=false \\
+        --variant no-refine --out bench/ENGINE.md --append
+
+What it measures, per pair (manifest order, seed = ``derive_seed(config.seed, pair_id)``):
+
+* accuracy: rotation / relative translation / scale / TM errors of the returned transform against the
+  ground truth (``gctr_cli.metrics.transform_errors``; translation relative to the target's bounding
+  box diagonal, as in the batch runner) and ``success`` with the thresholds of ``config.success``;
+  a pair whose engine status is not ``ok`` is never a success;
+* speed: wall time of ``register()`` alone (``time.perf_counter`` around the call; loading the files
+  and process start-up are excluded, loading is reported separately) and the engine's per-stage
+  timings (``RegistrationResult.timings``);
+* memory: each pair runs in a *fresh* child process (multiprocessing ``spawn`` context, one process
+  per pair, ``OMP_NUM_THREADS``/``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` = 1 in its environment
+  before numpy is imported), so the child's peak resident set is the pair's peak memory. It includes
+  the interpreter + imports baseline, which is also recorded (resident set right before the clouds
+  are loaded) so the pair's own increment is visible.
+
+  The peak is read from ``VmHWM`` in ``/proc/self/status`` (the high-water mark of the child's own
+  address space). ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` is recorded too (column
+  ``ru_maxrss_mb``) but not used: on Linux a spawned child's ``ru_maxrss`` starts at the *parent's*
+  high-water mark (the kernel folds the pre-exec address space into it at ``execve``), so it measures
+  the driver, not the pair.
+
+One child per pair rather than a ``Pool(maxtasksperchild=1)``: the same fresh process per pair, but a
+child that dies (e.g. killed for memory) or exceeds ``--time-limit`` is reported as that pair's
+failure instead of hanging the pool. ``-j`` runs that many children at once; the speed target of the
+issue is for one worker (``-j 1``, the default) on the 2-core machine.
+
+Outputs: ``bench/work/<variant>_pairs.csv`` (one row per pair; compare runs with it) and the
+markdown report ``--out`` (``--append`` adds or replaces the section of this variant). Everything
+except timings, memory, date and load average is deterministic.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import inspect
+import math
+import os
+import platform
+import re
+import shlex
+import subprocess
+import sys
+import time
+import traceback
+from collections import deque
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = REPO_ROOT / "bench" / "work" / "data"
+DEFAULT_WORK = REPO_ROOT / "bench" / "work"
+DEFAULT_OUT = REPO_ROOT / "bench" / "ENGINE.md"
+DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
+GENERATE_ARGS = ["generate", "--levels", "easy,cross,hard", "--pairs-per-model", "10", "--seed", "0", "--real"]
+THREAD_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+QUICK_PAIRS = 3
+
+# Stages reported by gctr_cli.engine.gctr (in pipeline order); unknown stages are appended, sorted.
+KNOWN_STAGES = ("preprocess", "supervoxels", "triplets", "tensor", "power_iteration", "ransac", "verify",
+                "similarity", "scoring", "refine")
+
+BASE_COLUMNS = [
+    "pair_id", "level", "model", "n_source", "n_target", "seed", "status", "success",
+    "rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "log_tm",
+    "scale_gt", "scale_est", "fitness", "n_inliers", "iterations", "overlap",
+    "time_s", "cpu_s", "load_s",
+]
+MEMORY_COLUMNS = ["rss_baseline_mb", "peak_rss_mb", "rss_increment_mb", "ru_maxrss_mb", "load_avg_1m"]
+SECTION_BEGIN = "<!-- bench-section: {} -->"
+SECTION_END = "<!-- /bench-section -->"
+VARIANT_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+class BenchError(Exception):
+    """A problem with the benchmark's inputs (config, data, arguments)."""
+
+
+# ============================================================================================ child
+def _proc_status_mb(field: str) -> float:
+    """A ``kB`` field of ``/proc/self/status`` (``VmRSS``, ``VmHWM``) in MiB; NaN if unavailable."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def _set_parent_death_signal() -> None:
+    """Linux: die with the driver (a killed benchmark must not leave a child computing)."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except Exception:  # noqa: BLE001
+        pass
+
+
+def run_one(task: dict[str, Any]) -> dict[str, Any]:
+    """Load, register and score one pair in the current process; return its CSV row (as a dict).
+
+    ``task``: pair_id, level, model, source, target, gt (paths), seed, config (a plain dict).
+    """
+    import resource
+
+    import numpy as np
+
+    from gctr_cli.config import config_from_dict
+    from gctr_cli.engine.gctr import register
+    from gctr_cli.io import load_point_cloud, read_matrix
+    from gctr_cli.metrics import decompose_similarity, transform_errors
+
+    config = config_from_dict(task["config"], "<bench config>")
+    row: dict[str, Any] = {k: task[k] for k in ("pair_id", "level", "model", "seed")}
+    row["threads_env"] = ",".join(os.environ.get(v, "") for v in THREAD_ENV_VARS)
+    row["rss_baseline_mb"] = _proc_status_mb("VmRSS")  # interpreter + numpy/scipy + engine imports
+
+    t0 = time.perf_counter()
+    source = load_point_cloud(task["source"])
+    target = load_point_cloud(task["target"])
+    T_gt = read_matrix(task["gt"])
+    row["load_s"] = time.perf_counter() - t0
+    row["n_source"], row["n_target"] = len(source), len(target)
+
+    c0, t0 = time.process_time(), time.perf_counter()
+    result = register(source, target, config.engine, seed=int(task["seed"]))
+    row["time_s"] = time.perf_counter() - t0
+    row["cpu_s"] = time.process_time() - c0
+
+    row["peak_rss_mb"] = _proc_status_mb("VmHWM")
+    row["ru_maxrss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    row["rss_increment_mb"] = row["peak_rss_mb"] - row["rss_baseline_mb"]
+
+    row["status"] = str(result.status)
+    row["message"] = " ".join(str(result.message or "").split())
+    row["fitness"] = float(result.fitness)
+    row["n_inliers"] = int(result.n_inliers)
+    row["iterations"] = int(result.iterations)
+    row["overlap"] = float(result.overlap)
+    row["scale_est"] = float(result.scale)
+    row["scale_gt"] = decompose_similarity(T_gt)[0]
+    row["timings"] = {str(k): float(v) for k, v in dict(result.timings).items()}
+    diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
+    # Same definition as the batch runner: translation error measured at the source centroid when
+    # gctr_cli.metrics supports it (robust to far-from-origin coordinates), else ||t_est - t_gt||.
+    kwargs = {}
+    if "source_centre" in inspect.signature(transform_errors).parameters:
+        kwargs["source_centre"] = source.mean(axis=0)
+    row["trans_err_at"] = "source centroid" if kwargs else "origin"
+    try:
+        err = transform_errors(np.asarray(result.transform, dtype=float), T_gt, diagonal, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - a singular matrix: report, do not crash
+        row["message"] = (row["message"] + f"; errors not computable: {exc}").lstrip("; ")
+        row.update(rot_err_deg=math.nan, trans_err_rel=math.nan, scale_err=math.nan, tm_err=math.nan)
+    else:
+        row.update(rot_err_deg=err.rot_err_deg, trans_err_rel=err.trans_err_rel, scale_err=err.scale_err,
+                   tm_err=err.tm_err)
+    s = config.success
+    ok_errors = (row["rot_err_deg"] < s.rotation_deg and row["trans_err_rel"] < s.translation_rel
+                 and row["scale_err"] < s.scale)
+    row["success"] = bool(row["status"] == "ok" and ok_errors)
+    return row
+
+
+def _child_main(task: dict[str, Any], conn: Any) -> None:
+    """Entry point of a spawned child: run one pair, send its row (or the error) back, exit."""
+    _set_parent_death_signal()
+    try:
+        row = run_one(task)
+    except BaseException as exc:  # noqa: BLE001 - every problem becomes that pair's row
+        row = _error_row(task, "error", f"{type(exc).__name__}: {exc}")
+        row["traceback"] = traceback.format_exc()
+    try:
+        conn.send(row)
+    finally:
+        conn.close()
+
+
+def _error_row(task: dict[str, Any], status: str, message: str) -> dict[str, Any]:
+    return {"pair_id": task["pair_id"], "level": task["level"], "model": task["model"], "seed": task["seed"],
+            "status": status, "message": " ".join(message.split()), "success": False, "timings": {}}
+
+
+# ============================================================================================ driver
+def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 600.0,
+              progress: bool = True) -> list[dict[str, Any]]:
+    """Run every task in its own freshly spawned child, at most ``jobs`` at a time; rows in task order."""
+    import multiprocessing
+    from multiprocessing.connection import wait
+
+    ctx = multiprocessing.get_context("spawn")
+    saved = {v: os.environ.get(v) for v in THREAD_ENV_VARS}
+    for v in THREAD_ENV_VARS:  # inherited by the children at exec, i.e. before they import numpy
+        os.environ[v] = "1"
+    rows: dict[int, dict[str, Any]] = {}
+    pending = deque(enumerate(tasks))
+    running: dict[Any, tuple[int, Any, float]] = {}
+    n_done = 0
+    try:
+        while pending or running:
+            while pending and len(running) < max(1, jobs):
+                i, task = pending.popleft()
+                reader, writer = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_child_main, args=(task, writer), name=f"bench-{task['pair_id']}",
+                                   daemon=True)
+                proc.start()
+                writer.close()
+                running[reader] = (i, proc, time.monotonic())
+            for reader in wait(list(running), timeout=1.0):
+                i, proc, _ = running.pop(reader)
+                try:
+                    row = reader.recv()
+                except (EOFError, OSError):
+                    proc.join(5)
+                    row = _error_row(tasks[i], "crashed", f"child process died (exit code {proc.exitcode})")
+                reader.close()
+                proc.join()
+                row["load_avg_1m"] = _load_average()
+                rows[i] = row
+                n_done += 1
+                if progress:
+                    _print_progress(n_done, len(tasks), row)
+            now = time.monotonic()
+            for reader, (i, proc, start) in list(running.items()):
+                if now - start > time_limit_s:
+                    proc.kill()
+                    proc.join()
+                    reader.close()
+                    del running[reader]
+                    rows[i] = _error_row(tasks[i], "timeout", f"killed after the {time_limit_s:g} s time limit")
+                    n_done += 1
+                    if progress:
+                        _print_progress(n_done, len(tasks), rows[i])
+    finally:
+        for reader, (_, proc, _) in running.items():
+            proc.kill()
+            proc.join()
+        for v, value in saved.items():
+            if value is None:
+                os.environ.pop(v, None)
+            else:
+                os.environ[v] = value
+    return [rows[i] for i in range(len(tasks))]
+
+
+def _print_progress(done: int, total: int, row: dict[str, Any]) -> None:
+    if row.get("status") in ("ok", "failed"):
+        detail = (f"{row['status']:6s} {'success' if row['success'] else 'FAIL   '} {row['time_s']:6.2f} s (cpu {row['cpu_s']:5.2f})  "
+                  f"rot {row['rot_err_deg']:.3g} deg  trans {row['trans_err_rel']:.3g}  scale {row['scale_err']:.3g}  "
+                  f"peak {row['peak_rss_mb']:.0f} MB")
+    else:
+        detail = f"{row.get('status')}: {row.get('message')}"
+    print(f"[{done:3d}/{total}] {row['pair_id']:28s} {detail}", file=sys.stderr, flush=True)
+
+
+# ============================================================================================ config
+def parse_set(item: str) -> tuple[list[str], Any]:
+    """``a.b.c=value`` -> (["a", "b", "c"], value parsed as a YAML scalar)."""
+    import yaml
+
+    key, sep, raw = item.partition("=")
+    keys = [k.strip() for k in key.split(".")]
+    if not sep or not all(keys):
+        raise BenchError(f"--set {item!r}: expected KEY=VALUE with a dotted key, e.g. engine.refine.enabled=false")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as err:
+        raise BenchError(f"--set {item!r}: value is not valid YAML: {err}") from None
+    return keys, value
+
+
+def resolve_config(path: Path | None, overrides: list[str]) -> tuple[Any, dict[str, Any]]:
+    """(validated Config, its resolved plain dict) from an optional YAML file and ``--set`` overrides."""
+    import yaml
+
+    from gctr_cli.config import ConfigError, config_from_dict
+
+    data: dict[str, Any] = {}
+    if path is not None:
+        try:
+            loaded = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError) as err:
+            raise BenchError(f"config {path}: {err}") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise BenchError(f"config {path}: top level must be a mapping")
+        data = loaded or {}
+    for item in overrides:
+        keys, value = parse_set(item)
+        node = data
+        for k in keys[:-1]:
+            if not isinstance(node.get(k), dict):
+                node[k] = {}
+            node = node[k]
+        node[keys[-1]] = value
+    try:
+        config = config_from_dict(data, str(path) if path else "<built-in defaults + --set>")
+    except ConfigError as err:
+        raise BenchError(str(err)) from None
+    return config, config.model_dump(mode="json")
+
+
+# ============================================================================================ data
+def ensure_data(data: Path) -> Path:
+    """``data/pairs.csv``, generating the default benchmark there first if it is missing."""
+    manifest = data / "pairs.csv"
+    if manifest.is_file():
+        return manifest
+    cmd = [sys.executable, "-m", "data_scripts.make_benchmark", *GENERATE_ARGS[:1], "--out", str(data),
+           *GENERATE_ARGS[1:]]
+    print(f"{manifest} missing; generating: {shlex.join(cmd)}", file=sys.stderr, flush=True)
+    subprocess.run(cmd, cwd=REPO_ROOT, check=True)
+    if not manifest.is_file():
+        raise BenchError(f"the generator did not write {manifest}")
+    return manifest
+
+
+def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
+               config_dict: dict[str, Any]) -> list[dict[str, Any]]:
+    """One task per selected pair, in manifest order (``--quick``: first 3 per model per level)."""
+    from gctr_cli.batch import derive_seed
+    from gctr_cli.manifest import ManifestError, read_manifest
+
+    try:
+        specs = {s.pair_id: s for s in read_manifest(manifest)}
+    except ManifestError as err:
+        raise BenchError(str(err)) from None
+    with open(manifest, newline="", encoding="utf-8-sig") as fh:
+        extra = {r["pair_id"].strip(): r for r in csv.DictReader(fh)}
+    tasks: list[dict[str, Any]] = []
+    per_group: dict[tuple[str, str], int] = {}
+    for pid, spec in specs.items():
+        meta = extra.get(pid, {})
+        level = (meta.get("level") or "").strip() or "all"
+        model = (meta.get("model") or "").strip() or "?"
+        if level not in levels:
+            continue
+        if spec.gt is None:
+            raise BenchError(f"{manifest}: pair {pid} has no ground truth (gt column)")
+        n = per_group.get((level, model), 0)
+        if quick and n >= QUICK_PAIRS:
+            continue
+        per_group[(level, model)] = n + 1
+        tasks.append({"pair_id": pid, "level": level, "model": model, "source": str(spec.source),
+                      "target": str(spec.target), "gt": str(spec.gt), "seed": derive_seed(config.seed, pid),
+                      "config": config_dict})
+    missing = [lv for lv in levels if not any(t["level"] == lv for t in tasks)]
+    if missing:
+        raise BenchError(f"{manifest}: no pairs for level(s) {', '.join(missing)}")
+    # Manifest order within the requested level order.
+    return sorted(tasks, key=lambda t: levels.index(t["level"]))
+
+
+# ============================================================================================ CSV
+def stage_names(rows: list[dict[str, Any]]) -> list[str]:
+    seen = {k for r in rows for k in r.get("timings", {})}
+    return [s for s in KNOWN_STAGES] + sorted(seen - set(KNOWN_STAGES))
+
+
+def csv_columns(stages: list[str]) -> list[str]:
+    return BASE_COLUMNS + [f"t_{s}" for s in stages] + ["t_other"] + MEMORY_COLUMNS + ["message"]
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        return format(value, ".10g")
+    return str(value)
+
+
+def flat_row(row: dict[str, Any], stages: list[str]) -> dict[str, Any]:
+    """A result row with derived columns (log TM, per-stage seconds, unaccounted time)."""
+    out = dict(row)
+    tm = row.get("tm_err")
+    out["log_tm"] = math.log(tm) if isinstance(tm, float) and tm > 0 else (math.nan if tm is not None else None)
+    timings = row.get("timings", {})
+    for s in stages:
+        out[f"t_{s}"] = float(timings.get(s, 0.0)) if "time_s" in row else None
+    if "time_s" in row:
+        out["t_other"] = max(0.0, row["time_s"] - sum(timings.values()))
+    return out
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]], stages: list[str]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cols = csv_columns(stages)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(cols)
+        for r in rows:
+            fr = flat_row(r, stages)
+            w.writerow([_fmt(fr.get(c)) for c in cols])
+    os.replace(tmp, path)
+
+
+# ============================================================================================ report
+def _median(xs: list[float]) -> float:
+    xs = sorted(x for x in xs if x is not None and not math.isnan(x))
+    if not xs:
+        return math.nan
+    n = len(xs)
+    return xs[n // 2] if n % 2 else (xs[n // 2 - 1] + xs[n // 2]) / 2
+
+
+def _quantile(xs: list[float], q: float) -> float:
+    """Linear-interpolation quantile (numpy's default)."""
+    xs = sorted(x for x in xs if x is not None and not math.isnan(x))
+    if not xs:
+        return math.nan
+    pos = q * (len(xs) - 1)
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, len(xs) - 1)
+    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
+
+
+def _num(x: float, spec: str = ".3g") -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "–"
+    return format(x, spec)
+
+
+def _rate(n: int, total: int) -> str:
+    return f"{n}/{total} ({100.0 * n / total:.1f}%)" if total else "0/0"
+
+
+def machine_info() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    cpu = platform.processor() or "unknown"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.lower().startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    versions = {}
+    for pkg in ("numpy", "scipy"):
+        try:
+            versions[pkg] = version(pkg)
+        except PackageNotFoundError:
+            versions[pkg] = "?"
+    return {"cores": str(os.cpu_count()), "cpu": cpu, "python": platform.python_version(),
+            "numpy": versions["numpy"], "scipy": versions["scipy"], "platform": platform.platform()}
+
+
+def _level_stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    ran = [r for r in rows if "time_s" in r]
+    return {
+        "pairs": len(rows),
+        "models": len({r["model"] for r in rows}),
+        "success": sum(1 for r in rows if r.get("success")),
+        "rot": _median([r.get("rot_err_deg", math.nan) for r in ran]),
+        "trans": _median([r.get("trans_err_rel", math.nan) for r in ran]),
+        "scale": _median([r.get("scale_err", math.nan) for r in ran]),
+        "tm": _median([r.get("tm_err", math.nan) for r in ran]),
+        "logtm": _median([math.log(r["tm_err"]) for r in ran if r.get("tm_err", 0) > 0]),
+        "t_med": _median([r["time_s"] for r in ran]),
+        "t_p90": _quantile([r["time_s"] for r in ran], 0.9),
+        "cpu_med": _median([r["cpu_s"] for r in ran]),
+        "mem": max((r["peak_rss_mb"] for r in ran), default=math.nan),
+        "mem_inc": max((r["rss_increment_mb"] for r in ran), default=math.nan),
+        "base": _median([r["rss_baseline_mb"] for r in ran]),
+        "load": _median([r["load_s"] for r in ran]),
+        "n_src": _median([float(r["n_source"]) for r in ran]),
+        "n_tgt": _median([float(r["n_target"]) for r in ran]),
+    }
+
+
+def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str, Any]) -> str:
+    """The markdown section of one variant (between its begin/end markers)."""
+    stages = [s for s in stage_names(rows)]
+    success_cfg = info["success"]
+    groups = [(lv, [r for r in rows if r["level"] == lv]) for lv in levels]
+    if len(levels) > 1:
+        groups.append(("all", rows))
+    out: list[str] = [SECTION_BEGIN.format(info["variant"]), f"## Variant `{info['variant']}`", ""]
+    overrides = ", ".join(f"`{o}`" for o in info["overrides"]) or "none"
+    m = info["machine"]
+    out += [
+        f"- Date: {info['date']}",
+        f"- Command: `{info['command']}`",
+        f"- Machine: {m['cores']} cores (`os.cpu_count()`), {m['cpu']}; Python {m['python']}, numpy {m['numpy']}, "
+        f"scipy {m['scipy']}; load average (1 min) {info['load_before']:.2f} before, {info['load_after']:.2f} after "
+        f"the run",
+        f"- Code: {info['code']}",
+        f"- Config: {info['config_source']}; overrides: {overrides}; resolved config sha256 `{info['config_hash']}`, "
+        f"seed {info['seed']} (per pair `derive_seed(seed, pair_id)`)",
+        f"- Success: rotation < {success_cfg['rotation_deg']:g}°, translation < {success_cfg['translation_rel']:g} × "
+        f"target bbox diagonal, scale error < {success_cfg['scale']:g}, and engine status `ok` (translation error "
+        f"measured at the {_trans_at(rows)}, as the batch runner does; `gctr_cli.metrics.transform_errors`)",
+        f"- Data: `{info['data']}` ({len(rows)} pairs{', --quick: first 3 per model per level' if info['quick'] else ''});"
+        f" per-pair results: `{info['csv']}`",
+        f"- Workers: {info['jobs']} (each pair in a fresh spawned process with 1 BLAS/OpenMP thread)"
+        + ("" if info["jobs"] == 1 else " — several pairs at once: times are NOT one-worker figures"),
+        f"- Total wall time of the run: {info['wall_s']:.0f} s",
+        *_contention_note(rows, info),
+        "",
+        "### Accuracy, speed, memory per level",
+        "",
+        "Errors are medians over all pairs of the level (a failed pair counts with the transform it returned). "
+        "log(TM) is the natural log of the Frobenius norm ‖T_est − T_gt‖ (the paper's Table 1 quantity; "
+        "absolute units of each model). Time: `register()` only. Peak memory: the child process's peak "
+        "resident set, *including* the interpreter + numpy/scipy/engine baseline. CPU time: "
+        "`time.process_time()` of the child around `register()` (one thread, so it equals the wall time on an idle "
+        "machine and is far less sensitive to other processes competing for the cores).",
+        "",
+        "| level | pairs | models | points src / tgt (median) | success | median rot err (°) | median trans err (rel) "
+        "| median scale err | median TM err | median log(TM) | median time (s) | p90 time (s) | median CPU time (s) | max peak mem (MB) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    stats = {lv: _level_stats(rs) for lv, rs in groups}
+    for lv, rs in groups:
+        st = stats[lv]
+        out.append(
+            f"| {lv} | {st['pairs']} | {st['models']} | {_num(st['n_src'], '.0f')} / {_num(st['n_tgt'], '.0f')} "
+            f"| {_rate(st['success'], st['pairs'])} | {_num(st['rot'])} | {_num(st['trans'])} | {_num(st['scale'])} "
+            f"| {_num(st['tm'])} | {_num(st['logtm'], '.2f')} | {_num(st['t_med'], '.2f')} | {_num(st['t_p90'], '.2f')} "
+            f"| {_num(st['cpu_med'], '.2f')} | {_num(st['mem'], '.0f')} |"
+        )
+    out += ["", "### Memory", "",
+            "| level | median baseline RSS before loading (MB) | max peak RSS (MB) | max increment over baseline (MB) "
+            "| median load time (s) |",
+            "|---|---:|---:|---:|---:|"]
+    for lv, _ in groups:
+        st = stats[lv]
+        out.append(f"| {lv} | {_num(st['base'], '.0f')} | {_num(st['mem'], '.0f')} | {_num(st['mem_inc'], '.0f')} "
+                   f"| {_num(st['load'], '.3f')} |")
+    out += ["", "Baseline: resident set of the child right before the clouds are loaded (interpreter, numpy, "
+            "scipy, the engine modules). Peak: `VmHWM` of the child (its own address space); `ru_maxrss` of a "
+            "spawned child would include the driver's high-water mark, see the module docstring.", ""]
+
+    # targets of issue 2
+    targets = _targets(stats, rows, info)
+    if targets:
+        out += ["### Targets (issue 2, \"What must hold\")", "", "| target | measured | holds |", "|---|---|---|"]
+        out += [f"| {t} | {mv} | {'yes' if ok else '**no**'} |" for t, mv, ok in targets]
+        out.append("")
+
+    # per-stage timings
+    out += ["### Time per stage", "",
+            "Mean seconds per pair spent in each engine stage (`RegistrationResult.timings`) and its share of the "
+            "`register()` time; `other` is the unaccounted rest (validation, normalisation, bookkeeping).", "",
+            "| stage | " + " | ".join(lv for lv, _ in groups) + " |",
+            "|---|" + "---:|" * len(groups)]
+    totals = {lv: sum(r["time_s"] for r in rs if "time_s" in r) for lv, rs in groups}
+    counts = {lv: sum(1 for r in rs if "time_s" in r) for lv, rs in groups}
+    for s in stages + ["other", "total"]:
+        cells = []
+        for lv, rs in groups:
+            ran = [flat_row(r, stages) for r in rs if "time_s" in r]
+            if not ran:
+                cells.append("–")
+                continue
+            key = "time_s" if s == "total" else f"t_{s}"
+            tot = sum(r[key] for r in ran)
+            share = 100.0 * tot / totals[lv] if totals[lv] > 0 else math.nan
+            cells.append(f"{tot / counts[lv]:.3f} ({share:.0f}%)")
+        if s != "total" and all(c.startswith("0.000 (0%)") or c == "–" for c in cells):
+            continue  # a stage that never ran in this variant (e.g. refine off)
+        out.append(f"| {'**total**' if s == 'total' else s} | " + " | ".join(cells) + " |")
+    out.append("")
+
+    # failures
+    failed = [r for r in rows if not r.get("success")]
+    out += ["### Failed pairs", ""]
+    if not failed:
+        out.append("None.")
+    else:
+        out += ["| pair | level | status | rot err (°) | trans err (rel) | scale err | time (s) | message |",
+                "|---|---|---|---:|---:|---:|---:|---|"]
+        for r in failed:
+            msg = (r.get("message") or "").replace("|", "\\|") or "(status ok, errors above the thresholds)"
+            out.append(f"| {r['pair_id']} | {r['level']} | {r.get('status')} | {_num(r.get('rot_err_deg'))} "
+                       f"| {_num(r.get('trans_err_rel'))} | {_num(r.get('scale_err'))} | {_num(r.get('time_s'), '.2f')} "
+                       f"| {msg} |")
+    out += ["", SECTION_END, ""]
+    return "\n".join(out)
+
+
+def _trans_at(rows: list[dict[str, Any]]) -> str:
+    kinds = sorted({r["trans_err_at"] for r in rows if "trans_err_at" in r})
+    return " / ".join(kinds) if kinds else "source centroid"
+
+
+def _contention_note(rows: list[dict[str, Any]], info: dict[str, Any]) -> list[str]:
+    """A warning line when other processes competed for the cores during the run (load average sampled
+    after every pair; this run itself accounts for about ``jobs``)."""
+    loads = [r["load_avg_1m"] for r in rows if not math.isnan(r.get("load_avg_1m", math.nan))]
+    if not loads:
+        return []
+    mean, top = sum(loads) / len(loads), max(loads)
+    cores = int(info["machine"]["cores"]) if info["machine"]["cores"].isdigit() else 0
+    line = f"- Load average (1 min) sampled after each pair: mean {mean:.2f}, max {top:.2f}"
+    ratios = [r["time_s"] / r["cpu_s"] for r in rows if r.get("cpu_s", 0) > 0]
+    ratio = _median(ratios)
+    if mean > info["jobs"] + 0.5:
+        line += f" on {cores} cores (this run accounts for about {info['jobs']}): other processes were running"
+        if ratio > 1.1:
+            line += (f" — **they took CPU from the benchmark (median wall/CPU time ratio {ratio:.2f}): wall times "
+                     f"and per-stage times are inflated; the CPU-time column is the better speed figure**")
+        else:
+            line += (f", but the pairs were not starved of CPU (median wall/CPU time ratio {ratio:.2f}); shared "
+                     f"caches and memory bandwidth may still have slowed them slightly")
+    return [line]
+
+
+def _targets(stats: dict[str, Any], rows: list[dict[str, Any]], info: dict[str, Any]) -> list[tuple[str, str, bool]]:
+    out = []
+    if "cross" in stats:
+        st = stats["cross"]
+        ok = st["pairs"] >= 30 and st["models"] >= 3 and st["success"] >= 0.95 * st["pairs"]
+        out.append(("`cross` level (1/4 density, 0.5% noise, 10% outliers, 70–90% crops): success ≥ 95% over "
+                    "≥ 30 pairs from ≥ 3 models",
+                    f"{_rate(st['success'], st['pairs'])}, {st['models']} models", ok))
+    ran = [r for r in rows if "time_s" in r]
+    big = [r for r in ran if r["n_source"] >= 15000]
+    if big:
+        med = _median([r["time_s"] for r in big])
+        cpu = _median([r["cpu_s"] for r in big])
+        out.append(("median time < 1 s per pair (one worker, overlap search included), clouds of ~20k points",
+                    f"{med:.2f} s wall ({cpu:.2f} s CPU) over the {len(big)} pairs with a ≥ 15k-point source"
+                    + ("" if info["jobs"] == 1 else f" (with -j {info['jobs']})"), med < 1.0))
+    if ran:
+        peak = max(r["peak_rss_mb"] for r in ran)
+        out.append(("peak memory < 1 GB per pair", f"max {peak:.0f} MB (incl. interpreter baseline)", peak < 1024))
+    return out
+
+
+REPORT_HEADER = """# GCTR engine benchmark
+
+Generated by `data_scripts/bench_engine.py` (see its docstring for what is measured and how). Pairs:
+`python -m data_scripts.make_benchmark generate --levels easy,cross,hard --pairs-per-model 10 --seed 0 --real`
+(levels: `easy` 1/2 density, 0.25% noise, no outliers, 90–100% crops, scale in [0.5, 2]; `cross` 1/4
+density, 0.5% noise, 10% outliers, 70–90% crops, scale in [0.5, 2]; `hard` 1/8 density, 1% noise, 30%
+outliers, 50–90% crops, scale in [0.25, 4]; `real` raw bunny range scans with their true relative pose,
+a random similarity on the source and a 1/4 density target). Models: Stanford bunny and dragon,
+3DMatch redkitchen. Each section below is one configuration variant.
+
+"""
+
+
+def write_report(out: Path, section: str, variant: str, append: bool) -> None:
+    """Write ``out`` (header + section), or with ``append`` add/replace this variant's section."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if append and out.is_file():
+        text = out.read_text()
+        begin = SECTION_BEGIN.format(variant)
+        i = text.find(begin)
+        if i >= 0:
+            j = text.find(SECTION_END, i)
+            j = len(text) if j < 0 else j + len(SECTION_END)
+            while j < len(text) and text[j] == "\n":
+                j += 1
+            text = text[:i] + section + ("\n" if j < len(text) else "") + text[j:]
+        else:
+            text = text.rstrip("\n") + "\n\n" + section
+    else:
+        text = REPORT_HEADER + section
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, out)
+
+
+# ============================================================================================ CLI
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m data_scripts.bench_engine", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA,
+                   help="folder with pairs.csv (generated there if missing); default bench/work/data")
+    p.add_argument("--levels", default="easy,cross,hard,real", help="comma-separated levels (default: %(default)s)")
+    p.add_argument("-c", "--config", type=Path, default=None,
+                   help="YAML config (default: configs/default.yaml if it exists, else the built-in defaults)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="dotted override, value parsed as YAML, e.g. engine.refine.enabled=false (repeatable)")
+    p.add_argument("--variant", default="default", help="label of this configuration (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="markdown report (default bench/ENGINE.md)")
+    p.add_argument("--append", action="store_true", help="add (or replace) this variant's section in --out")
+    p.add_argument("--csv", type=Path, default=None, help="per-pair CSV (default bench/work/<variant>_pairs.csv)")
+    p.add_argument("--quick", action="store_true", help=f"only the first {QUICK_PAIRS} pairs per model per level")
+    p.add_argument("-j", "--jobs", type=int, default=1, help="pairs run at once (default 1: the speed target)")
+    p.add_argument("--time-limit", type=float, default=600.0, help="seconds per pair before it is killed")
+    p.add_argument("-q", "--quiet", action="store_true", help="no per-pair progress lines")
+    return p
+
+
+def code_state() -> str:
+    """``git HEAD`` and whether the engine/config files differ from it (the run used the working tree)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "gctr_cli", "configs"], cwd=REPO_ROOT,
+                               capture_output=True, text=True, check=True).stdout.splitlines()
+    except (OSError, subprocess.CalledProcessError):
+        return "not a git checkout"
+    if not dirty:
+        return f"git `{head}`, engine and configs unmodified"
+    names = ", ".join(f"`{line[3:]}`" for line in dirty[:8]) + (f", … ({len(dirty) - 8} more)" if len(dirty) > 8 else "")
+    return f"git `{head}` plus uncommitted changes in {names}"
+
+
+CODE_FILES = ("gctr_cli/engine/*.py", "gctr_cli/config.py", "gctr_cli/metrics.py", "gctr_cli/io.py")
+
+
+def code_fingerprint(config_path: Path | None = None) -> str:
+    """sha256 of the files a pair's child imports (engine, config schema, metrics, io) and of the config
+    file: children start one per pair, so an edit during the run would change later pairs only."""
+    h = hashlib.sha256()
+    files = [f for pattern in CODE_FILES for f in sorted(REPO_ROOT.glob(pattern))]
+    for f in files + ([Path(config_path)] if config_path else []):
+        try:
+            data = f.read_bytes()
+        except OSError:
+            data = b"<unreadable>"
+        h.update(f.name.encode() + b"\0" + data + b"\0")
+    return h.hexdigest()[:12]
+
+
+def _load_average() -> float:
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return math.nan
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    argv_used = sys.argv[1:] if argv is None else list(argv)
+    try:
+        if not VARIANT_RE.match(args.variant):
+            raise BenchError(f"--variant {args.variant!r}: use letters, digits, '.', '_' or '-'")
+        if args.jobs < 1:
+            raise BenchError("-j must be at least 1")
+        levels = [lv.strip() for lv in args.levels.split(",") if lv.strip()]
+        if not levels:
+            raise BenchError("--levels is empty")
+        config_path = args.config if args.config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
+        config, config_dict = resolve_config(config_path, args.overrides)
+        manifest = ensure_data(args.data)
+        tasks = load_tasks(manifest, levels, args.quick, config, config_dict)
+    except BenchError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+    csv_path = args.csv if args.csv is not None else DEFAULT_WORK / f"{args.variant}_pairs.csv"
+    load_before = _load_average()
+    fingerprint = code_fingerprint(config_path)
+    t0 = time.monotonic()
+    rows = run_pairs(tasks, args.jobs, args.time_limit, progress=not args.quiet)
+    wall = time.monotonic() - t0
+    load_after = _load_average()
+    for r in rows:
+        if "traceback" in r:
+            print(f"{r['pair_id']}: {r['traceback']}", file=sys.stderr)
+    stages = stage_names(rows)
+    write_csv(csv_path, rows, stages)
+
+    def shown(p: Path) -> str:
+        p = Path(p).resolve()
+        try:
+            return str(p.relative_to(REPO_ROOT))
+        except ValueError:
+            return str(p)
+
+    resolved = "\n".join(f"{k}={v}" for k, v in sorted(_flatten(config_dict).items()))
+    info = {
+        "variant": args.variant,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "command": "python -m data_scripts.bench_engine" + (" " + shlex.join(argv_used) if argv_used else ""),
+        "machine": machine_info(),
+        "load_before": load_before,
+        "load_after": load_after,
+        "config_source": f"`{shown(config_path)}`" if config_path else "built-in defaults",
+        "overrides": list(args.overrides),
+        "config_hash": hashlib.sha256(resolved.encode()).hexdigest()[:12],
+        "seed": config.seed,
+        "success": config_dict["success"],
+        "data": shown(manifest),
+        "csv": shown(csv_path),
+        "quick": args.quick,
+        "jobs": args.jobs,
+        "wall_s": wall,
+        "code": code_state() + f"; fingerprint of the engine/config/metrics/io code + config file `{fingerprint}`"
+        + ("" if code_fingerprint(config_path) == fingerprint else
+           " — **these files changed during the run: pairs ran on different code, re-run this variant**"),
+    }
+    write_report(args.out, render_section(rows, levels, info), args.variant, args.append)
+    n_ok = sum(1 for r in rows if r.get("success"))
+    print(f"{n_ok}/{len(rows)} pairs succeeded; {csv_path}; report {args.out}", file=sys.stderr)
+    return 0
+
+
+def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(data, dict):
+        out: dict[str, Any] = {}
+        for k, v in data.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out
+    return {prefix.rstrip("."): data}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

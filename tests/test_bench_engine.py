@@ -1,0 +1,177 @@
+"""The engine benchmark driver (data_scripts/bench_engine.py) on a tiny generated set.
+
+One end-to-end run of the command line on two small bunny pairs (levels easy and cross, 3000-point
+sources), plus an ``--append`` run of a second variant; the rest are in-process unit checks.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from data_scripts import bench_engine as be
+from data_scripts import make_benchmark as mb
+
+REPO = Path(__file__).resolve().parents[1]
+TIMING_COLUMNS = {"time_s", "cpu_s", "load_s", "rss_baseline_mb", "peak_rss_mb", "rss_increment_mb",
+                  "ru_maxrss_mb", "load_avg_1m"}
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory) -> Path:
+    """``pairs.csv`` with one easy and one cross bunny pair (3000-point sources), as the generator writes it."""
+    from data_scripts.common import read_points
+
+    out = tmp_path_factory.mktemp("bench") / "data"
+    bunny = read_points(mb.DATA_DIR / "models" / "bunny.ply")
+    rows = []
+    for level in ("easy", "cross"):
+        pair = mb.make_pair(bunny, mb.LEVELS[level], mb.pair_rng(0, level, "bunny", 0), n_source=3000)
+        row = mb.write_pair(out / level, f"{level}_bunny_0", pair, "ply")
+        rows.append({**row, **{c: f"{level}/{row[c]}" for c in ("source", "target", "gt")},
+                     "model": "bunny", "level": level})
+    mb.write_manifest(out / "pairs.csv", rows)
+    return out
+
+
+def read_rows(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        return list(reader.fieldnames or []), list(reader)
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "data_scripts.bench_engine", "-q", *args]
+    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
+
+
+def level_row(report: str, level: str) -> list[str]:
+    """Cells of the per-level accuracy table row of ``level`` (first table of the section)."""
+    for line in report.splitlines():
+        if line.startswith(f"| {level} |"):
+            return [c.strip() for c in line.strip("|").split("|")]
+    raise AssertionError(f"no table row for level {level}")
+
+
+def test_cli_writes_csv_and_report_consistent_with_it(tiny_data, tmp_path):
+    out, pairs_csv = tmp_path / "ENGINE.md", tmp_path / "t_pairs.csv"
+    proc = run_cli("--data", str(tiny_data), "--levels", "easy,cross", "--variant", "t", "--out", str(out),
+                   "--csv", str(pairs_csv))
+    assert proc.returncode == 0, proc.stderr
+
+    columns, rows = read_rows(pairs_csv)
+    for col in ("pair_id", "level", "model", "n_source", "n_target", "status", "rot_err_deg", "trans_err_rel",
+                "scale_err", "tm_err", "log_tm", "success", "time_s", "cpu_s", "load_s", "overlap", "peak_rss_mb",
+                "rss_baseline_mb", "rss_increment_mb", "t_preprocess", "t_tensor", "t_power_iteration", "t_ransac",
+                "t_refine", "t_other", "message"):
+        assert col in columns, col
+    assert [r["pair_id"] for r in rows] == ["easy_bunny_0", "cross_bunny_0"]
+    for r in rows:
+        assert r["status"] in ("ok", "failed")
+        assert int(r["n_source"]) == 3000 and int(r["n_target"]) > 0
+        assert float(r["time_s"]) > 0 and float(r["cpu_s"]) > 0
+        assert 0 < float(r["rss_baseline_mb"]) < float(r["peak_rss_mb"]) < 1024
+        stage_sum = sum(float(r[c]) for c in columns if c.startswith("t_"))
+        assert stage_sum == pytest.approx(float(r["time_s"]), rel=0.02, abs=1e-3)
+
+    report = out.read_text()
+    assert report.startswith("# GCTR engine benchmark")
+    assert "python -m data_scripts.bench_engine -q --data " in report  # the exact command line
+    assert f"--levels easy,cross --variant t --out {out}" in report
+    for header in ("| level | pairs | models |", "success", "median rot err (°)", "median log(TM)",
+                   "median time (s)", "p90 time (s)", "max peak mem (MB)", "### Time per stage", "| stage |",
+                   "### Failed pairs", "<!-- bench-section: t -->"):
+        assert header in report, header
+    for level in ("easy", "cross"):
+        n_ok = sum(r["success"] == "true" for r in rows if r["level"] == level)
+        cells = level_row(report, level)
+        assert cells[1] == "1" and cells[2] == "1"  # pairs, models
+        assert cells[4] == f"{n_ok}/1 ({100.0 * n_ok:.1f}%)"
+    n_ok = sum(r["success"] == "true" for r in rows)
+    assert level_row(report, "all")[4] == f"{n_ok}/2 ({50.0 * n_ok:.1f}%)"
+
+    # --append adds a second variant's section and keeps the first; re-running it replaces it in place
+    for _ in range(2):
+        proc = run_cli("--data", str(tiny_data), "--levels", "cross", "--variant", "no-refine", "--set",
+                       "engine.refine.enabled=false", "--out", str(out), "--csv", str(tmp_path / "n.csv"), "--append")
+        assert proc.returncode == 0, proc.stderr
+    report2 = out.read_text()
+    assert report2.startswith(report.rstrip("\n"))
+    assert report2.count("<!-- bench-section: no-refine -->") == 1
+    assert report2.count("# GCTR engine benchmark") == 1
+    assert "overrides: `engine.refine.enabled=false`" in report2
+    _, rows2 = read_rows(tmp_path / "n.csv")
+    assert [r["pair_id"] for r in rows2] == ["cross_bunny_0"] and float(rows2[0]["t_refine"]) == 0.0
+
+
+def test_run_one_is_deterministic_apart_from_timings(tiny_data):
+    config, config_dict = be.resolve_config(None, [])
+    task = be.load_tasks(tiny_data / "pairs.csv", ["cross"], False, config, config_dict)[0]
+    a, b = be.run_one(task), be.run_one(task)
+    stages = be.stage_names([a, b])
+    fa, fb = be.flat_row(a, stages), be.flat_row(b, stages)
+    stable = [c for c in be.csv_columns(stages) if c not in TIMING_COLUMNS and not c.startswith("t_")]
+    assert {c: be._fmt(fa.get(c)) for c in stable} == {c: be._fmt(fb.get(c)) for c in stable}
+
+
+def test_set_overrides_are_yaml_scalars_and_validated():
+    config, d = be.resolve_config(None, ["engine.refine.enabled=false", "engine.scale_method=umeyama",
+                                         "engine.tensor.knn=20", "success.rotation_deg=2.5"])
+    assert config.engine.refine.enabled is False and config.engine.scale_method == "umeyama"
+    assert config.engine.tensor.knn == 20 and config.success.rotation_deg == 2.5
+    assert d["engine"]["tensor"]["knn"] == 20
+    with pytest.raises(be.BenchError, match="unknown key"):
+        be.resolve_config(None, ["engine.no_such_key=1"])
+    with pytest.raises(be.BenchError, match="KEY=VALUE"):
+        be.resolve_config(None, ["engine.refine.enabled"])
+
+
+def test_quick_keeps_first_three_pairs_per_model_and_level(tmp_path):
+    rows = []
+    for level in ("cross", "hard"):
+        for model in ("a", "b"):
+            for k in range(5):
+                pid = f"{level}_{model}_{k}"
+                rows.append({"pair_id": pid, "source": f"{pid}_s.ply", "target": f"{pid}_t.ply", "gt": f"{pid}.txt",
+                             "model": model, "level": level, "scale_gt": "", "overlap_src": "", "overlap_tgt": ""})
+    mb.write_manifest(tmp_path / "pairs.csv", rows)
+    config, d = be.resolve_config(None, [])
+    tasks = be.load_tasks(tmp_path / "pairs.csv", ["hard", "cross"], True, config, d)
+    assert [t["pair_id"] for t in tasks] == [f"{lv}_{m}_{k}" for lv in ("hard", "cross") for m in "ab" for k in range(3)]
+    assert len({t["seed"] for t in tasks}) == len(tasks)
+    assert len(be.load_tasks(tmp_path / "pairs.csv", ["cross"], False, config, d)) == 10
+    with pytest.raises(be.BenchError, match="no pairs for level"):
+        be.load_tasks(tmp_path / "pairs.csv", ["easy"], False, config, d)
+
+
+def test_stage_table_and_failed_list_render():
+    rows = [
+        {"pair_id": "p1", "level": "cross", "model": "m", "status": "ok", "success": True, "rot_err_deg": 0.1,
+         "trans_err_rel": 0.001, "scale_err": 0.001, "tm_err": 0.01, "time_s": 1.0, "cpu_s": 0.9, "load_s": 0.01,
+         "n_source": 20000, "n_target": 5000, "peak_rss_mb": 120.0, "rss_baseline_mb": 80.0,
+         "rss_increment_mb": 40.0, "load_avg_1m": 1.0, "timings": {"tensor": 0.6, "ransac": 0.3}},
+        {"pair_id": "p2", "level": "cross", "model": "n", "status": "failed", "success": False, "rot_err_deg": 90.0,
+         "trans_err_rel": 1.0, "scale_err": 0.5, "tm_err": 3.0, "time_s": 3.0, "cpu_s": 2.9, "load_s": 0.01,
+         "n_source": 20000, "n_target": 5000, "peak_rss_mb": 130.0, "rss_baseline_mb": 80.0,
+         "rss_increment_mb": 50.0, "load_avg_1m": 3.0, "message": "too weak | evidence",
+         "timings": {"tensor": 1.0, "ransac": 1.5}},
+    ]
+    info = {"variant": "v", "date": "d", "command": "python -m data_scripts.bench_engine", "load_before": 1.0,
+            "load_after": 1.0, "machine": {"cores": "2", "cpu": "x", "python": "3", "numpy": "2", "scipy": "1"},
+            "config_source": "built-in defaults", "overrides": [], "config_hash": "h", "seed": 0,
+            "success": {"rotation_deg": 5.0, "translation_rel": 0.05, "scale": 0.05}, "data": "d", "csv": "c",
+            "quick": False, "jobs": 1, "wall_s": 4.0, "code": "git `x`"}
+    text = be.render_section(rows, ["cross"], info)
+    assert "| cross | 2 | 2 | 20000 / 5000 | 1/2 (50.0%) |" in text
+    assert "| tensor | 0.800 (40%) |" in text and "| ransac | 0.900 (45%) |" in text
+    assert "| other | 0.300 (15%) |" in text and "| **total** | 2.000 (100%) |" in text
+    assert "| refine |" not in text  # a stage that never ran is left out
+    assert re.search(r"\| p2 \| cross \| failed \| 90 \| 1 \| 0\.5 \| 3\.00 \| too weak \\\| evidence \|", text)
+    assert "other processes were running, but the pairs were not starved of CPU (median wall/CPU time ratio 1.07)" in text
+    rows[1]["time_s"] = 6.0  # wall twice the CPU time: contention
+    assert "they took CPU from the benchmark" in be.render_section(rows, ["cross"], info)
