@@ -881,6 +881,13 @@ def limits_text(rows, stats, goals, methods, levels, profile, succ_th) -> list[s
                            f"of them: {len(both)}.")
     if not out:
         out.append("- Goals: none missed on this run.")
+    for g in goals:
+        if "fastest" in g and g["met"]:
+            gm = stats[("gctr", "all")]["time_med"]
+            fm = stats[(g["fastest"], "all")]["time_med"]
+            if gm > 0.9 * fm:
+                out.append(f"- The time goal holds by a thin margin (gctr {gm:.2f} s vs {g['fastest']} {fm:.2f} s): "
+                           "within run-to-run noise of the machine, so another run may tip it either way.")
     for lv in levels:
         bad = [r for r in rows if r["method"] == "gctr" and r["level"] == lv and not r["success"]]
         if not bad or any(f"`{lv}`" in g["goal"] and not g["met"] for g in goals):
