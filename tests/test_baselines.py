@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 from conftest import REPO, read_csv, row_matrix, write_cloud, write_manifest_rows
 from gctr_cli import cli
 from gctr_cli.baselines import REGISTER_FUNCTIONS, register_fpfh_ransac
-from gctr_cli.baselines.common import box_normalise, compose
+from gctr_cli.baselines.common import box_normalise
+from gctr_cli.engine.preprocess import denormalise
 from gctr_cli.baselines.cpd import cpd_rigid
 from gctr_cli.config import BaselineConfig, Config, ConfigError, config_from_dict
 from gctr_cli.io import load_point_cloud
@@ -114,9 +115,9 @@ def test_normalisation_is_composed_back():
     na, nb = box_normalise(a), box_normalise(b)
     assert np.linalg.norm(na.points.max(0) - na.points.min(0)) == pytest.approx(1.0)
     T_n = _similarity(1.1, 20.0, [0, 0, 1], [0.01, 0.02, 0.0])
-    T = compose(na, nb, T_n)
+    T = denormalise(T_n, na, nb)
     # T maps original source points exactly where T_n maps the normalised ones (in target units)
-    np.testing.assert_allclose(_apply(T, a), _apply(T_n, na.points) * nb.diagonal + nb.centroid, atol=1e-9)
+    np.testing.assert_allclose(_apply(T, a), _apply(T_n, na.points) * nb.size + nb.centre, atol=1e-9)
 
 
 # ------------------------------------------------------------------------------------------ robustness

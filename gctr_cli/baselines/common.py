@@ -32,8 +32,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gctr_cli.config import BaselineConfig
-from gctr_cli.engine.preprocess import DegenerateCloudError, validate_cloud
+from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, validate_cloud
 from gctr_cli.engine.result import RegistrationResult
+from gctr_cli.engine.similarity import apply
 
 #: fewer points than this after downsampling: the method cannot run (failed status)
 MIN_WORKING_POINTS = 10
@@ -43,38 +44,12 @@ class BaselineFailure(Exception):
     """A comparison method could not produce a transform; the message goes into the failed row."""
 
 
-@dataclass(frozen=True)
-class BoxNormalised:
-    """A cloud in normalised coordinates: ``points = (original - centroid) / diagonal``."""
-
-    points: np.ndarray
-    centroid: np.ndarray
-    diagonal: float
-
-    def to_original(self) -> np.ndarray:
-        """4x4 similarity from normalised to original coordinates."""
-        T = np.eye(4)
-        T[:3, :3] *= self.diagonal
-        T[:3, 3] = self.centroid
-        return T
-
-
-def box_normalise(points: np.ndarray) -> BoxNormalised:
-    """Centre on the centroid, scale to a bounding-box diagonal of 1."""
+def box_normalise(points: np.ndarray) -> NormalisedCloud:
+    """Centre on the centroid, scale to a bounding-box diagonal of 1 (the comparison methods'
+    protocol; biased under rotation and crops, which is the point of comparing)."""
     centroid = points.mean(axis=0)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    return BoxNormalised(points=(points - centroid) / diagonal, centroid=centroid, diagonal=diagonal)
-
-
-def compose(src: BoxNormalised, tgt: BoxNormalised, T_n: np.ndarray) -> np.ndarray:
-    """Normalised-frame transform -> transform between the original clouds."""
-    T = tgt.to_original() @ T_n @ np.linalg.inv(src.to_original())
-    T[3] = (0.0, 0.0, 0.0, 1.0)
-    return T
-
-
-def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
+    return NormalisedCloud(points=(points - centroid) / diagonal, centre=centroid, size=diagonal)
 
 
 # ---------------------------------------------------------------------------------------------- Open3D
@@ -139,8 +114,8 @@ class Timer:
 class Prepared:
     """Both clouds validated and normalised, plus the evaluation cloud and target tree."""
 
-    src: BoxNormalised
-    tgt: BoxNormalised
+    src: NormalisedCloud
+    tgt: NormalisedCloud
     src_eval: np.ndarray  # normalised source, voxel-downsampled for fitness evaluation
     tgt_tree: cKDTree  # over the normalised target
 
@@ -202,8 +177,8 @@ def finish(prep: Prepared, T_n: np.ndarray, cfg: BaselineConfig, seed: int, star
     ok = np.isfinite(d)
     n_inliers = int(ok.sum())
     fitness = n_inliers / max(len(prep.src_eval), 1)
-    rmse = float(np.sqrt(np.mean(d[ok] ** 2))) * prep.tgt.diagonal if n_inliers else float("nan")
-    T = compose(prep.src, prep.tgt, T_n)
+    rmse = float(np.sqrt(np.mean(d[ok] ** 2))) * prep.tgt.size if n_inliers else float("nan")
+    T = denormalise(T_n, prep.src, prep.tgt)
     timer.lap("evaluate")
     if fitness < cfg.min_fitness:
         return failed(f"too weak evidence: fitness {fitness:.3f} below {cfg.min_fitness}", seed, start, timer.timings,

@@ -39,7 +39,7 @@ from gctr_cli.engine.descriptor import triangle_descriptors, with_ambiguous_perm
 from gctr_cli.engine.power_iteration import power_iteration
 from gctr_cli.engine.preprocess import (
     DegenerateCloudError,
-    NormalisedCloud,
+    denormalise,
     downsample_to,
     estimate_normals,
     normalise,
@@ -219,19 +219,6 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
     return _Candidate(transform=T, n_inliers=n_inliers, iterations=it, fit=fit, coverage=cov, overlap=overlap)
 
 
-def _to_original(T_n: np.ndarray, ns: NormalisedCloud, nt: NormalisedCloud) -> np.ndarray:
-    """Compose ``target = size_t * (T_n (source - c_s) / size_s) + c_t`` into one 4x4 matrix.
-
-    Written out instead of multiplying 4x4 matrices so that large coordinates (e.g. UTM offsets
-    of 1e6) keep full precision: the translation is ``c_t + size_t * t_n - A c_s``.
-    """
-    A = T_n[:3, :3] * (nt.size / ns.size)
-    T = np.eye(4)
-    T[:3, :3] = A
-    T[:3, 3] = nt.centre + nt.size * T_n[:3, 3] - A @ ns.centre
-    return T
-
-
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
             transform: np.ndarray | None = None) -> RegistrationResult:
     T = np.eye(4) if transform is None else transform
@@ -336,7 +323,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
             T_n, fit = T_r, evaluate_fit(src.points, tgt.tree, T_r, cfg.inlier_distance_ratio)
         timer.add("refine", t)
 
-    T = _to_original(T_n, ns, nt)
+    T = denormalise(T_n, ns, nt)
     scale = float(np.linalg.det(T[:3, :3]) ** (1.0 / 3.0))
     rotation = T[:3, :3] / scale
     status, message = "ok", ""

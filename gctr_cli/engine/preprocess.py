@@ -34,6 +34,20 @@ class NormalisedCloud:
         return T
 
 
+def denormalise(T_n: np.ndarray, src: NormalisedCloud, tgt: NormalisedCloud) -> np.ndarray:
+    """Turn a transform between two normalised clouds into one between the original clouds:
+    ``target = tgt.size * (T_n (source - src.centre) / src.size) + tgt.centre``.
+
+    Written out instead of multiplying 4x4 matrices so that large coordinates (e.g. UTM offsets
+    of 1e6) keep full precision: the translation is ``c_t + size_t * t_n - A c_s``.
+    """
+    A = T_n[:3, :3] * (tgt.size / src.size)
+    T = np.eye(4)
+    T[:3, :3] = A
+    T[:3, 3] = tgt.centre + tgt.size * T_n[:3, 3] - A @ src.centre
+    return T
+
+
 def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.ndarray:
     """Return a finite (N, 3) float64 array or raise :class:`DegenerateCloudError`.
 
