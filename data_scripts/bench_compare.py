@@ -54,7 +54,6 @@ import argparse  # noqa: E402
 import csv  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import shlex  # noqa: E402
 import shutil  # noqa: E402
 import subprocess  # noqa: E402
@@ -67,6 +66,8 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+from data_scripts.common import machine_info  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("gctr", "icp", "fpfh_ransac", "fgr", "cpd")
@@ -164,38 +165,6 @@ def _split(value: str) -> list[str]:
 
 
 # ============================================================================================ machine
-def machine_info() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    cpu = platform.processor() or "unknown"
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        usable = os.cpu_count() or 1
-    info = {"cpu": cpu, "cores": str(os.cpu_count()), "usable_cores": str(usable),
-            "python": platform.python_version(), "platform": platform.platform()}
-    for pkg in ("numpy", "scipy", "open3d"):
-        try:
-            info[pkg] = version(pkg)
-        except PackageNotFoundError:
-            info[pkg] = "?"
-    try:
-        with open("/proc/meminfo") as fh:
-            kb = int(fh.readline().split()[1])
-        info["memory_gb"] = f"{kb / 1024 / 1024:.1f}"
-    except (OSError, ValueError, IndexError):
-        info["memory_gb"] = "?"
-    return info
-
-
 def load_average() -> float:
     try:
         return os.getloadavg()[0]

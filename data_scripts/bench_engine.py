@@ -43,7 +43,6 @@ import hashlib
 import inspect
 import math
 import os
-import platform
 import re
 import shlex
 import subprocess
@@ -54,6 +53,9 @@ from collections import deque
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
+
+from data_scripts.common import machine_info
+from gctr_cli.batch import flatten_dict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO_ROOT / "bench" / "work" / "data"
@@ -442,28 +444,6 @@ def _rate(n: int, total: int) -> str:
     return f"{n}/{total} ({100.0 * n / total:.1f}%)" if total else "0/0"
 
 
-def machine_info() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    cpu = platform.processor() or "unknown"
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    versions = {}
-    for pkg in ("numpy", "scipy"):
-        try:
-            versions[pkg] = version(pkg)
-        except PackageNotFoundError:
-            versions[pkg] = "?"
-    return {"cores": str(os.cpu_count()), "cpu": cpu, "python": platform.python_version(),
-            "numpy": versions["numpy"], "scipy": versions["scipy"], "platform": platform.platform()}
-
-
 def _level_stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
     ran = [r for r in rows if "time_s" in r]
     return {
@@ -782,7 +762,7 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             return str(p)
 
-    resolved = "\n".join(f"{k}={v}" for k, v in sorted(_flatten(config_dict).items()))
+    resolved = "\n".join(f"{k}={v}" for k, v in sorted(flatten_dict(config_dict).items()))
     info = {
         "variant": args.variant,
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
@@ -808,15 +788,6 @@ def main(argv: list[str] | None = None) -> int:
     n_ok = sum(1 for r in rows if r.get("success"))
     print(f"{n_ok}/{len(rows)} pairs succeeded; {csv_path}; report {args.out}", file=sys.stderr)
     return 0
-
-
-def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(data, dict):
-        out: dict[str, Any] = {}
-        for k, v in data.items():
-            out.update(_flatten(v, f"{prefix}{k}."))
-        return out
-    return {prefix.rstrip("."): data}
 
 
 if __name__ == "__main__":

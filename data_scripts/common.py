@@ -6,6 +6,8 @@ output bytes depend only on the array: the same array always gives the same file
 
 from __future__ import annotations
 
+import os
+import platform
 from pathlib import Path
 
 import numpy as np
@@ -178,3 +180,36 @@ def voxel_downsample_to_count(points: np.ndarray, target: int, iterations: int =
             hi = mid
     voxel = float(best[1])
     return voxel_downsample(points, voxel), voxel
+
+
+def machine_info() -> dict[str, str]:
+    """The machine a benchmark ran on: CPU model, cores, memory, Python and library versions."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    cpu = platform.processor() or "unknown"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.lower().startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        usable = os.cpu_count() or 1
+    info = {"cpu": cpu, "cores": str(os.cpu_count()), "usable_cores": str(usable),
+            "python": platform.python_version(), "platform": platform.platform()}
+    for pkg in ("numpy", "scipy", "open3d"):
+        try:
+            info[pkg] = version(pkg)
+        except PackageNotFoundError:
+            info[pkg] = "?"
+    try:
+        with open("/proc/meminfo") as fh:
+            kb = int(fh.readline().split()[1])
+        info["memory_gb"] = f"{kb / 1024 / 1024:.1f}"
+    except (OSError, ValueError, IndexError):
+        info["memory_gb"] = "?"
+    return info

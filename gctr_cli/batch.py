@@ -818,11 +818,12 @@ def _read_rows(path: Path, header: Sequence[str]) -> list[dict[str, str]]:
         return [dict(zip(header, row)) for row in reader if row]
 
 
-def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+def flatten_dict(data: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mapping -> ``{"a.b.c": value}`` (used to compare and fingerprint configs)."""
     if isinstance(data, dict):
         out: dict[str, Any] = {}
         for k, v in data.items():
-            out.update(_flatten(v, f"{prefix}{k}."))
+            out.update(flatten_dict(v, f"{prefix}{k}."))
         return out
     return {prefix[:-1]: data}
 
@@ -836,8 +837,8 @@ def _check_same_config(outdir: Path, config: Config) -> None:
         old = load_config(path)
     except ConfigError as exc:
         raise BatchError(f"cannot resume: {exc}") from None
-    a = _flatten(old.model_dump(mode="json", exclude={"batch"}))
-    b = _flatten(config.model_dump(mode="json", exclude={"batch"}))
+    a = flatten_dict(old.model_dump(mode="json", exclude={"batch"}))
+    b = flatten_dict(config.model_dump(mode="json", exclude={"batch"}))
     diff = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
     if diff:
         shown = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in diff[:5])
