@@ -94,6 +94,16 @@ class RefineConfig(_Strict):
     end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")
 
 
+class VerdictConfig(_Strict):
+    """How candidates are ranked and how sure the engine is (see gctr_cli.engine.verdict)."""
+
+    sample_points: int = Field(800, ge=50, description="points of each cloud moved and looked up per candidate")
+    finalists: int = Field(10, ge=1, description="hypotheses per round scored by surface agreement")
+    max_normal_angle_deg: float = Field(30.0, gt=0, le=90, description="normals agree below this angle")
+    distinct_ratio: float = Field(0.1, gt=0, description="a rival moves the source by more (RMS / robust diameter)")
+    full_agreement: float = Field(0.5, gt=0, le=1, description="agreement score at which the evidence counts as complete")
+
+
 class EngineConfig(_Strict):
     """All parameters of the GCTR engine."""
 
@@ -105,6 +115,7 @@ class EngineConfig(_Strict):
     ransac: RansacConfig = RansacConfig()
     outer: OuterLoopConfig = OuterLoopConfig()
     refine: RefineConfig = RefineConfig()
+    verdict: VerdictConfig = VerdictConfig()
     overlap: Literal["auto"] | float = Field("auto", description="'auto' searches 0.25/0.5/0.75/1.0")
     overlap_candidates: tuple[float, ...] = Field((0.25, 0.5, 0.75, 1.0), description="ratios tried by 'auto'")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"

@@ -46,12 +46,13 @@ from gctr_cli.engine.preprocess import (
     validate_cloud,
 )
 from gctr_cli.engine.ransac import Hypotheses, OccupancyGrid, ransac_hypotheses, refit, sample_from_assignment
-from gctr_cli.engine.refine import Fit, evaluate_fit, scaled_point_to_plane_icp, trimmed_scaled_icp
+from gctr_cli.engine.refine import evaluate_fit, scaled_point_to_plane_icp, trimmed_scaled_icp
 from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.similarity import apply, best_similarity, to_matrix
 from gctr_cli.engine.supervoxel import supervoxels
 from gctr_cli.engine.tensor import SparseTensor3, build_first_order, build_third_order, entry_scores, subset
 from gctr_cli.engine.triplets import sample_triangles
+from gctr_cli.engine.verdict import Agreement, Surface, Verdict, confidence, displacement, surface_agreement
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,7 @@ class _Prepared:
     salient: np.ndarray  # supervoxel centroids
     salient_normals: np.ndarray
     salient_tree: cKDTree
+    surface: Surface  # what the verdict moves and looks up
     grids: dict = field(default_factory=dict, compare=False)
 
     def grid(self, radius: float) -> OccupancyGrid:
@@ -90,14 +92,13 @@ class _Candidate:
     transform: np.ndarray  # normalised source -> normalised target
     n_inliers: int
     iterations: int
-    fit: Fit
-    coverage: float  # fraction of target points explained by the moved source
+    agreement: Agreement
     overlap: float
+    alternatives: tuple[tuple[np.ndarray, Agreement], ...]  # runners-up seen on the way (verdict rivals)
 
     @property
     def score(self) -> float:
-        """Symmetric fitness: penalises a source shrunk onto a small part of the target."""
-        return float(np.sqrt(self.fit.fitness * self.coverage))
+        return self.agreement.score
 
 
 def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, timer: _Timer) -> _Prepared:
@@ -119,20 +120,16 @@ def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, ti
         keep = np.sort(np.argsort(-sv.sizes, kind="stable")[: cfg.supervoxel.max_salient])
         salient, salient_normals = salient[keep], salient_normals[keep]
     timer.add("supervoxels", t)
-    return _Prepared(points=work, normals=normals, tree=cKDTree(work), salient=salient, salient_normals=salient_normals,
-                     salient_tree=cKDTree(salient))
+    tree = cKDTree(work)
+    return _Prepared(points=work, normals=normals, tree=tree, salient=salient, salient_normals=salient_normals,
+                     salient_tree=cKDTree(salient),
+                     surface=Surface.build(work, normals, tree, cfg.verdict.sample_points))
 
 
 def _min_edges(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     a, b, c = points[i], points[j], points[k]
     return np.minimum(np.minimum(np.linalg.norm(a - b, axis=1), np.linalg.norm(b - c, axis=1)),
                       np.linalg.norm(c - a, axis=1))
-
-
-def _coverage(src: _Prepared, tgt: _Prepared, T: np.ndarray, distance: float) -> float:
-    """Fraction of target working points with a moved source point within ``distance``."""
-    d, _ = cKDTree(apply(T, src.points)).query(tgt.points, distance_upper_bound=distance)
-    return float(np.isfinite(d).mean())
 
 
 def _dense_scores(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, distance: float,
@@ -152,12 +149,19 @@ def _dense_scores(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, distance: flo
     return np.sqrt(fitness * coverage)
 
 
-def _select_dense(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, distance: float, finalists: int = 10) -> int:
-    """Index of the best hypothesis: a coarse dense score for all, a finer one for the finalists."""
-    coarse = _dense_scores(src, tgt, hyp, distance, n_points=150)
-    top = np.argsort(-coarse, kind="stable")[:finalists]
-    sub = Hypotheses(hyp.scale[top], hyp.rotation[top], hyp.translation[top], hyp.score[top])
-    return int(top[int(np.argmax(_dense_scores(src, tgt, sub, distance)))])
+def _select_dense(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, cfg: EngineConfig
+                  ) -> tuple[int, list[tuple[np.ndarray, Agreement]]]:
+    """Index of the best hypothesis and the finalists with their surface agreement: a coarse
+    occupancy score for all, the surface agreement (proximity + normals) for the finalists."""
+    coarse = _dense_scores(src, tgt, hyp, cfg.inlier_distance_ratio, n_points=150)
+    top = np.argsort(-coarse, kind="stable")[:cfg.verdict.finalists]
+    scored = []
+    for j in top:
+        T = to_matrix(float(hyp.scale[j]), hyp.rotation[j], hyp.translation[j])
+        scored.append((T, surface_agreement(T, src.surface, tgt.surface, cfg.inlier_distance_ratio,
+                                            cfg.verdict.max_normal_angle_deg)))
+    k = int(np.argmax([a.score for _, a in scored]))
+    return int(top[k]), scored
 
 
 def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: float, cfg: EngineConfig,
@@ -170,6 +174,7 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
     T: np.ndarray | None = None
     X: np.ndarray | None = None
     n_inliers, it = 0, 0
+    seen: list[tuple[np.ndarray, Agreement]] = []
     for it in range(1, cfg.outer.max_iterations + 1):
         t = time.perf_counter()
         H1 = build_first_order(apply(T, S), Q, cfg.tensor.first_order_sigma) if T is not None else None
@@ -194,7 +199,8 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
             break
         # Dense verification: the salient-inlier count is a coarse vote; re-rank the best
         # hypotheses by the symmetric fitness on the working clouds.
-        j = _select_dense(src, tgt, hyp, cfg.inlier_distance_ratio)
+        j, finalists = _select_dense(src, tgt, hyp, cfg)
+        seen += finalists
         rr = refit(float(hyp.scale[j]), hyp.rotation[j], hyp.translation[j], S, Q, tgt.salient_tree, threshold,
                    bounds_n)
         t = timer.add("verify", t)
@@ -213,10 +219,44 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
     if T is None:
         return None
     t = time.perf_counter()
-    fit = evaluate_fit(src.points, tgt.tree, T, cfg.inlier_distance_ratio)
-    cov = _coverage(src, tgt, T, cfg.inlier_distance_ratio)
+    agreement = surface_agreement(T, src.surface, tgt.surface, cfg.inlier_distance_ratio,
+                                  cfg.verdict.max_normal_angle_deg)
     timer.add("scoring", t)
-    return _Candidate(transform=T, n_inliers=n_inliers, iterations=it, fit=fit, coverage=cov, overlap=overlap)
+    return _Candidate(transform=T, n_inliers=n_inliers, iterations=it, agreement=agreement, overlap=overlap,
+                      alternatives=tuple(seen))
+
+
+def _refine(T_n: np.ndarray, agreement: Agreement, src: _Prepared, tgt: _Prepared, cfg: EngineConfig,
+            bounds_n: tuple[float, float]) -> np.ndarray:
+    """Scaled ICP polish of the coarse answer, kept only when the surface agreement does not drop
+    (ICP can drift the scale on outlier-ridden, partial clouds; the verdict's objective exposes it)."""
+    r = cfg.refine
+    if r.method == "point_to_plane":
+        T_r, _ = scaled_point_to_plane_icp(src.points, tgt.points, tgt.normals, T_n, r.iterations, r.start_ratio,
+                                           r.end_ratio, bounds_n, tgt.tree, src_normals=src.normals,
+                                           max_normal_angle_deg=cfg.verdict.max_normal_angle_deg)
+    else:
+        T_r, _ = trimmed_scaled_icp(src.points, tgt.points, T_n, r.iterations, r.start_ratio, r.end_ratio, bounds_n,
+                                    tgt.tree)
+    refined = surface_agreement(T_r, src.surface, tgt.surface, cfg.inlier_distance_ratio,
+                                cfg.verdict.max_normal_angle_deg)
+    return T_r if refined.score >= agreement.score else T_n
+
+
+def _verdict(T_n: np.ndarray, candidates: list[_Candidate], src: _Prepared, tgt: _Prepared,
+             cfg: EngineConfig) -> Verdict:
+    """Agreement of the answer and of its best distinct rival among everything the search saw."""
+    v = cfg.verdict
+    agreement = surface_agreement(T_n, src.surface, tgt.surface, cfg.inlier_distance_ratio, v.max_normal_angle_deg)
+    pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
+    rival = 0.0
+    for T_alt, a in pool:
+        if a.score > rival and displacement(T_n, T_alt, src.surface.sample) > v.distinct_ratio:
+            rival = a.score
+    support = sum(displacement(T_n, c.transform, src.surface.sample) <= v.distinct_ratio for c in candidates)
+    conf = confidence(agreement.score, rival, v.full_agreement)
+    return Verdict(confidence=conf, score=agreement.score, rival_score=rival, agreement=agreement,
+                   support=support / max(len(candidates), 1))
 
 
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
@@ -281,6 +321,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     timer.add("tensor", t)
 
     best: _Candidate | None = None
+    candidates: list[_Candidate] = []
     for k, overlap in enumerate(overlaps):
         # A surface patch covering a fraction r of a cloud of (robust) diameter 1 has a diameter of
         # about sqrt(r): wide-baseline triangles need edges of min_edge_ratio * sqrt(r).
@@ -296,33 +337,25 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         cand = _outer_loop(src, tgt, subset(H3_all, keep), overlap, cfg, rng_overlaps[k % 4], prior, timer)
         if cand is None:
             continue
-        log.debug("overlap %.2f: fitness %.3f coverage %.3f, %d inliers", overlap, cand.fit.fitness,
-                  cand.coverage, cand.n_inliers)
+        log.debug("overlap %.2f: agreement source %.3f target %.3f, %d inliers", overlap, cand.agreement.source,
+                  cand.agreement.target, cand.n_inliers)
+        candidates.append(cand)
         if best is None or (cand.score, cand.n_inliers) > (best.score, best.n_inliers):
             best = cand
     if best is None:
         return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
                        timer.timings)
 
-    T_n, fit = best.transform, best.fit
+    T_n = best.transform
     if cfg.refine.enabled:
         t = time.perf_counter()
-        r = cfg.refine
-        if r.method == "point_to_plane":
-            T_r, _ = scaled_point_to_plane_icp(src.points, tgt.points, tgt.normals, T_n, r.iterations,
-                                               r.start_ratio, r.end_ratio, bounds_n, tgt.tree)
-        else:
-            T_r, _ = trimmed_scaled_icp(src.points, tgt.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
-                                        bounds_n, tgt.tree)
-        # Keep the refinement unless it loses robust fitness at a tight distance (half the inlier
-        # distance), which rewards precision and exposes a drift.
-        tight = 0.5 * cfg.inlier_distance_ratio
-        before = evaluate_fit(src.points, tgt.tree, T_n, tight).fitness
-        after = evaluate_fit(src.points, tgt.tree, T_r, tight).fitness
-        if after >= 0.97 * before:
-            T_n, fit = T_r, evaluate_fit(src.points, tgt.tree, T_r, cfg.inlier_distance_ratio)
+        T_n = _refine(T_n, best.agreement, src, tgt, cfg, bounds_n)
         timer.add("refine", t)
+    fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
 
+    t = time.perf_counter()
+    verdict = _verdict(T_n, candidates, src, tgt, cfg)
+    timer.add("verdict", t)
     T = denormalise(T_n, ns, nt)
     scale = float(np.linalg.det(T[:3, :3]) ** (1.0 / 3.0))
     rotation = T[:3, :3] / scale
@@ -338,7 +371,10 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         transform=T, scale=scale, rotation=rotation, translation=T[:3, 3].copy(), fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
         message=message, runtime_s=time.perf_counter() - start, seed=seed, overlap=best.overlap,
-        timings=timer.timings,
+        confidence=verdict.confidence, timings=timer.timings,
+        evidence={"score": verdict.score, "rival_score": verdict.rival_score,
+                  "source_agreement": verdict.agreement.source, "target_agreement": verdict.agreement.target,
+                  "support": verdict.support},
     )
 
 
@@ -359,7 +395,6 @@ def score_transform(source: np.ndarray, target: np.ndarray, transform: np.ndarra
     src = _prepare(ns.points, cfg, rng_src, timer)
     tgt = _prepare(nt.points, cfg, rng_tgt, timer)
     T_n = np.linalg.inv(nt.to_original()) @ np.asarray(transform, dtype=float) @ ns.to_original()
-    fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
-    cov = _coverage(src, tgt, T_n, cfg.inlier_distance_ratio)
-    return float(np.sqrt(fit.fitness * cov))
+    return surface_agreement(T_n, src.surface, tgt.surface, cfg.inlier_distance_ratio,
+                             cfg.verdict.max_normal_angle_deg).score
 

@@ -69,14 +69,18 @@ def _small_similarity(x: np.ndarray) -> np.ndarray:
 
 def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T0: np.ndarray,
                               iterations: int, start: float, end: float, scale_bounds: tuple[float, float],
-                              tgt_tree: cKDTree | None = None) -> tuple[np.ndarray, int]:
+                              tgt_tree: cKDTree | None = None, src_normals: np.ndarray | None = None,
+                              max_normal_angle_deg: float = 90.0) -> tuple[np.ndarray, int]:
     """Scaled point-to-plane ICP, linearised Gauss-Newton with trimming and Huber weights.
 
     Minimises ``sum w_i ((s R p_i + t - q_i) . n_i)^2`` over matches closer than a trimming
     distance that shrinks geometrically from ``start`` to ``end``. Point-to-plane lets the clouds
     slide along the surface, which avoids the scale and rotation bias that point-to-point matching
-    of differently sampled, noisy surfaces shows.
+    of differently sampled, noisy surfaces shows. With ``src_normals``, matches whose normals differ
+    by more than ``max_normal_angle_deg`` are dropped: outlier points have random normals, and
+    uniform outliers inside the target's volume otherwise pull the scale inwards.
     """
+    min_cos = float(np.cos(np.radians(max_normal_angle_deg)))
     tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
     T = T0.copy()
     taus = np.geomspace(start, end, max(iterations, 1))
@@ -85,6 +89,10 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
         p = apply(T, src)
         d, j = tree.query(p, distance_upper_bound=tau)
         keep = np.isfinite(d)
+        if src_normals is not None and min_cos > 0:
+            R = T[:3, :3] / np.cbrt(np.linalg.det(T[:3, :3]))
+            cos = np.abs(np.einsum("ij,ij->i", src_normals[keep] @ R.T, tgt_normals[j[keep]]))
+            keep[np.flatnonzero(keep)[cos < min_cos]] = False
         if keep.sum() < 20:
             break
         p, q, n = p[keep], tgt[j[keep]], tgt_normals[j[keep]]

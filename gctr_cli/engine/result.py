@@ -39,6 +39,7 @@ class RegistrationResult:
     overlap: float = float("nan")
     confidence: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)
+    evidence: dict[str, float] = field(default_factory=dict)  # the verdict's inputs (see engine.verdict)
 
     @property
     def ok(self) -> bool:

@@ -1,0 +1,113 @@
+"""Stage 7: the verdict — how well a transform explains both clouds, and how sure the engine is.
+
+Two measures, both on the working clouds in normalised coordinates:
+
+* **surface agreement** of a transform: the share of source points that land within the inlier
+  distance of the target surface *with a normal that agrees* (angle below ``max_angle_deg``), and
+  the same share of target points mapped back onto the source. Proximity alone is a weak test on
+  noisy, outlier-ridden or partial clouds (a wrong pose still puts a third of the points near some
+  surface); proximity with agreeing normals is rare by chance. The engine ranks its candidates by
+  :attr:`Agreement.score`, the mean of the two shares, which works for partial overlaps in both
+  directions: a part inside a whole has a high source share and a low target share.
+* **confidence** in [0, 1]: the agreement of the answer, discounted by how close the best
+  *distinct* alternative comes (a second transform that explains the data almost as well means
+  the data do not single out one answer). See :func:`confidence`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gctr_cli.engine.similarity import apply
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A working cloud as the verdict sees it: all points with normals and a tree, plus a fixed
+    evenly strided sample that is moved and looked up (keeps scoring cheap and deterministic)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+    sample: np.ndarray
+    sample_normals: np.ndarray
+
+    @classmethod
+    def build(cls, points: np.ndarray, normals: np.ndarray, tree: cKDTree, n_sample: int) -> "Surface":
+        step = max(1, len(points) // n_sample)
+        return cls(points, normals, tree, points[::step], normals[::step])
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """Shares of the source and target samples that the transform puts on the other surface."""
+
+    source: float
+    target: float
+
+    @property
+    def score(self) -> float:
+        """Mean of the two shares: the engine's objective for ranking candidates."""
+        return 0.5 * (self.source + self.target)
+
+
+def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surface, distance: float,
+                      min_cos: float) -> float:
+    d, j = other.tree.query(moved, distance_upper_bound=distance)
+    near = np.isfinite(d)
+    if not near.any():
+        return 0.0
+    cos = np.abs(np.einsum("ij,ij->i", moved_normals[near], other.normals[j[near]]))
+    return float(np.count_nonzero(cos >= min_cos)) / len(moved)
+
+
+def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float,
+                      max_angle_deg: float = 30.0) -> Agreement:
+    """Surface agreement of the similarity ``T`` (normalised source -> normalised target).
+
+    ``distance`` is in target units; the backward test uses ``distance / s`` in source units.
+    """
+    A = T[:3, :3]
+    s = float(np.cbrt(np.linalg.det(A)))
+    if not np.isfinite(s) or s <= 0:
+        return Agreement(0.0, 0.0)
+    R = A / s
+    min_cos = float(np.cos(np.radians(max_angle_deg)))
+    fwd = _share_on_surface(apply(T, src.sample), src.sample_normals @ R.T, tgt, distance, min_cos)
+    back_pts = (tgt.sample - T[:3, 3]) @ R / s
+    back = _share_on_surface(back_pts, tgt.sample_normals @ R, src, distance / s, min_cos)
+    return Agreement(fwd, back)
+
+
+def displacement(T1: np.ndarray, T2: np.ndarray, points: np.ndarray) -> float:
+    """RMS distance between where two transforms put ``points`` (target units)."""
+    return float(np.sqrt(np.mean(np.sum((apply(T1, points) - apply(T2, points)) ** 2, axis=1))))
+
+
+@dataclass(frozen=True)
+class Verdict:
+    confidence: float
+    score: float  # agreement score of the answer
+    rival_score: float  # best score among distinct alternatives (0 if none)
+    agreement: Agreement
+    support: float  # share of the independent overlap searches that ended at the answer
+
+
+def confidence(score: float, rival_score: float, full_score: float) -> float:
+    """Confidence in [0, 1] of an answer with agreement ``score`` whose best distinct rival scores
+    ``rival_score``.
+
+    ``distinctness = 1 - rival / score`` is 0 when another transform explains the data equally
+    well and 1 when nothing else comes close; ``evidence = min(1, score / full_score)`` is how much
+    of the data agrees, relative to ``full_score``, the agreement at which the evidence counts as
+    complete. The confidence is their product: a high value needs both a well-supported answer and
+    no close rival.
+    """
+    if score <= 0:
+        return 0.0
+    distinctness = float(np.clip(1.0 - rival_score / score, 0.0, 1.0))
+    evidence = float(np.clip(score / full_score, 0.0, 1.0))
+    return distinctness * evidence
