@@ -11,11 +11,12 @@ Three subcommands (``python -m data_scripts.make_benchmark --help``):
     Synthetic cross-source pairs in the way of the GCTR paper (which follows CSGM): from a model cloud
     ``M`` draw a source and a target that differ in density, noise, outliers, partial overlap (two
     different planar crops) and a random similarity ``T_gt`` with ``target ≈ T_gt @ source``.
-    Optionally (``--real``) pairs of real raw bunny scans with their true relative pose, made
+    Optionally (``--real``) pairs of real raw range scans with their true relative pose, made
     cross-source by a random similarity on the source and a 1/4 density target.
 
     Levels (``--levels``): ``easy``, ``cross``, ``hard`` (two planar crops of a model, see ``LEVELS``),
-    ``real`` (= ``--real``), and, for issue 9:
+    ``real`` (= ``--real``: the 6 real bunny scan pairs drawn 3 times each, 6 dragon scan pairs from ``--shared``
+drawn twice, the 6 shipped bunny scans against the bunny reconstruction: 36 pairs), and, for issue 9:
 
     * ``part`` — a compact patch (the points of a Euclidean ball around a random model point holding
       15–40 % of the model) against the whole model at 1/4 density; 0.5 % noise, 10 % outliers, scale
@@ -121,6 +122,16 @@ REAL_PAIRS = (
     ("top3", "bun000"),
     ("top3", "bun045"),
 )
+# Level real (issue 9: >= 30 pairs from >= 3 groups): every bunny scan pair drawn REAL_DRAWS times (another
+# random similarity and subsampling each time; draw 0 is the pair of earlier versions), REAL_DRAGON_PAIRS
+# of raw dragon scans (24 deg apart, overlaps 0.6-0.9, from --shared) drawn REAL_DRAWS_DRAGON times, and
+# each shipped bunny scan against the bunny reconstruction (data/models/bunny.ply, world frame).
+REAL_DRAWS = 3
+REAL_DRAGON_PAIRS = tuple((f"dragonStandRight_{a}", f"dragonStandRight_{b}")
+                          for a, b in ((24, 0), (72, 48), (120, 96), (168, 144), (216, 192), (264, 240)))
+REAL_DRAWS_DRAGON = 2
+DRAGON_SCANS = "stanford/dragon/scans"
+DRAGON_POSES = "dragonStandRight_poses_world_from_scan.txt"
 REAL_LEVEL = Level("real", density=1 / 4, noise=0.0, outliers=0.0, crop_lo=1.0, crop_hi=1.0, s_lo=0.5, s_hi=2.0)
 
 
@@ -660,6 +671,47 @@ def generate_real(
     return _write_level(out, "real", rows)
 
 
+def load_dragon_scans(shared: Path | None) -> tuple[dict, dict]:
+    """The raw dragon scans of ``REAL_DRAGON_PAIRS`` and their world_from_scan poses, from the shared data."""
+    if shared is None:
+        raise click.UsageError("level 'real' needs the shared data folder for the dragon scans: pass --shared")
+    folder = Path(shared) / DRAGON_SCANS
+    names = sorted({n for p in REAL_DRAGON_PAIRS for n in p})
+    needed = [folder / DRAGON_POSES, *(folder / f"{n}.ply" for n in names)]
+    missing = [str(f) for f in needed if not f.is_file()]
+    if missing:
+        raise click.UsageError(f"level 'real': missing shared data file(s): {', '.join(missing)}")
+    return {n: read_points(folder / f"{n}.ply") for n in names}, read_pose_file(folder / DRAGON_POSES)
+
+
+def generate_real_all(scans: dict, poses: dict, dragon_scans: dict, dragon_poses: dict, recon: np.ndarray, seed: int,
+                      out: Path, formats: list[str], n_source: int = 20000, pcd_encoding: str = "binary",
+                      draws: int = REAL_DRAWS, dragon_draws: int = REAL_DRAWS_DRAGON) -> list[dict]:
+    """Level ``real`` (see ``REAL_DRAWS``): bunny scan pairs x ``draws``, dragon scan pairs x ``dragon_draws``,
+    bunny scan -> reconstruction pairs; model column ``bunny_scans`` / ``dragon_scans`` / ``bunny_scan2recon``."""
+    jobs = []  # (rng, pair id, model, src, tgt, pose_src, pose_tgt)
+    for d in range(draws):
+        for k, (s, t) in enumerate(REAL_PAIRS):
+            key = f"{s}>{t}" if d == 0 else f"{s}>{t}#{d}"
+            jobs.append((pair_rng(seed, "real", key, k), f"real_{s}_to_{t}" + (f"_d{d}" if d else ""), "bunny_scans",
+                         scans[s], scans[t], poses[s], poses[t]))
+    for d in range(dragon_draws):
+        for k, (s, t) in enumerate(REAL_DRAGON_PAIRS):
+            short = f"{s.rsplit('_', 1)[1]}_to_{t.rsplit('_', 1)[1]}"
+            jobs.append((pair_rng(seed, "real", f"dragon{s}>{t}#{d}", k), f"real_dragon_{short}_d{d}", "dragon_scans",
+                         dragon_scans[s], dragon_scans[t], dragon_poses[s], dragon_poses[t]))
+    for k, s in enumerate(sorted({n for p in REAL_PAIRS for n in p})):
+        jobs.append((pair_rng(seed, "real", f"{s}>recon", k), f"real_{s}_to_recon", "bunny_scan2recon",
+                     scans[s], recon, poses[s], np.eye(4)))
+    rows = []
+    for rng, pid, model, src, tgt, pose_s, pose_t in jobs:
+        pair = make_real_pair(src, tgt, pose_s, pose_t, rng, n_source)
+        row = write_pair(out / "real", pid, pair, formats[len(rows) % len(formats)], pcd_encoding)
+        rows.append({**row, "model": model, "level": "real"})
+    log.info("level real: %d pairs", len(rows))
+    return _write_level(out, "real", rows)
+
+
 def load_models(paths) -> dict[str, np.ndarray]:
     models = {}
     for p in paths:
@@ -774,7 +826,7 @@ def ship(shared: Path, out: Path) -> None:
 @click.option("--real", is_flag=True, help="also write the real scan pairs (folder real/), like --levels ...,real")
 @click.option("--shared", type=click.Path(file_okay=False, path_type=Path), default=default_shared(),
               show_default="shared/data beside the repository, if it exists",
-              help="the shared raw data folder: scenes of level scene")
+              help="the shared raw data folder: scenes of level scene, dragon scans of level real")
 @click.option("--real-full-res", is_flag=True,
               help="real: read the full-resolution bunny scans from --shared instead of the shipped data/scans")
 @click.option("--formats", default="ply", show_default=True, help="formats cycled over pairs: ply,pcd,xyz")
@@ -799,13 +851,14 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
     synthetic = [lv for lv in level_names if lv in LEVELS]
     special = [lv for lv in level_names if lv in SPECIAL_LEVELS]
     scenes = load_scenes(shared) if "scene" in level_names else None  # fail early on missing files
+    dragon = load_dragon_scans(shared) if (real or "real" in level_names) else None  # likewise
     loaded = load_models(_split(models)) if synthetic or special else {}
     rows = generate_synthetic(loaded, synthetic, pairs_per_model, seed, out, fmts, n_source, pcd_encoding)
     if real or "real" in level_names:
         if real_full_res and shared is None:
             raise click.UsageError("--real-full-res needs --shared")
-        rows += generate_real(*load_scans(shared=shared if real_full_res else None), seed, out, fmts, n_source,
-                              pcd_encoding=pcd_encoding)
+        recon = read_points(DATA_DIR / "models" / "bunny.ply")
+        rows += generate_real_all(*load_scans(shared=shared if real_full_res else None), *dragon, recon, seed, out, fmts, n_source, pcd_encoding=pcd_encoding)
     rows += generate_special(loaded, special, pairs_per_model, seed, out, fmts, n_source, pcd_encoding)
     if scenes is not None:
         rows += generate_scene(*scenes, seed, out, fmts, n_source, windows_per_scene=pairs_per_model,

@@ -353,3 +353,27 @@ def test_new_levels_deterministic_and_independent(tmp_path, bunny):
     c = mb.generate_special(small, ["sfm"], 2, 4, tmp_path / "c", ["ply", "xyz"], n_source=1500)  # another seed
     assert (tmp_path / "c" / "sfm/sfm_bunny_0_gt.txt").read_bytes() != (tmp_path / "b" / "sfm/sfm_bunny_0_gt.txt").read_bytes()
     assert len(c) == 2
+
+
+@pytest.mark.skipif(SHARED is None or not (SHARED / mb.DRAGON_SCANS / mb.DRAGON_POSES).is_file(),
+                    reason="shared dragon scans not available")
+def test_real_level_three_groups_and_ground_truth(tmp_path):
+    scans, poses = mb.load_scans()
+    dragon, dposes = mb.load_dragon_scans(SHARED)
+    recon = read_points(DATA / "models" / "bunny.ply")
+    assert len(mb.REAL_PAIRS) * mb.REAL_DRAWS + len(mb.REAL_DRAGON_PAIRS) * mb.REAL_DRAWS_DRAGON + 6 >= 30
+    rows = mb.generate_real_all(scans, poses, dragon, dposes, recon, 0, tmp_path, ["ply"], n_source=1500,
+                                draws=2, dragon_draws=1)
+    assert len(rows) == 12 + 6 + 6 and len({r["pair_id"] for r in rows}) == len(rows)
+    assert {r["model"] for r in rows} == {"bunny_scans", "dragon_scans", "bunny_scan2recon"}
+    by_id = {r["pair_id"]: r for r in rows}
+    # draws of the same scan pair differ (another similarity)
+    assert read_matrix(tmp_path / by_id["real_bun045_to_bun000"]["gt"]).tolist() != \
+        read_matrix(tmp_path / by_id["real_bun045_to_bun000_d1"]["gt"]).tolist()
+    for r in rows[::3]:
+        src, tgt, T = (read_points(tmp_path / r["source"]), read_points(tmp_path / r["target"]),
+                       read_matrix(tmp_path / r["gt"]))
+        d = cKDTree(tgt).query(transform(T, src))[0]
+        # the overlapping part lands on the (sparse: 1/4 of 1500 points) target within a few mm; unmoved it does not
+        assert np.quantile(d, 0.3) < 0.006, r["pair_id"]
+        assert np.quantile(cKDTree(tgt).query(src)[0], 0.3) > 3 * np.quantile(d, 0.3)
