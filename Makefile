@@ -5,6 +5,9 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 DEMO   ?= demo_out
+# Benchmark data (issue 9): every level; the engine is tuned on seed 1 and reported on seed 0.
+BENCH_LEVELS ?= easy,cross,hard,real,part,lowoverlap,sfm,scene
+SHARED       ?= ../shared/data
 
 .PHONY: setup system-deps browser-deps demo test bench-engine clean help
 
@@ -14,6 +17,9 @@ help:
 	@echo "make bench-engine  full engine benchmark -> bench/ENGINE.md (tens of minutes)"
 	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the same pairs -> bench/RESULTS.md (~15 min)"
 	@echo "make bench-quick   the same on 15 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
+	@echo "make bench-data       generate the REPORT set (--seed 0, all levels) -> bench/work/data"
+	@echo "make bench-data-tune  generate the TUNING set (--seed 1, all levels) -> bench/work/data-seed1"
+	@echo "                      (tune the engine on seed 1, report on seed 0; level scene reads SHARED=$(SHARED))"
 
 # Open3D's wheel links against libusb-1.0; install it from Debian's packages when it is missing.
 system-deps:
@@ -65,7 +71,15 @@ clean:
 	rm -rf $(DEMO) .pytest_cache build *.egg-info
 
 # Side-by-side benchmark of gctr and the comparison methods (issue 4): bench/RESULTS.md + bench/*.png.
-.PHONY: bench bench-quick
+.PHONY: bench bench-quick bench-data bench-data-tune
+bench-data: setup
+	$(BIN)/python -m data_scripts.make_benchmark generate --levels $(BENCH_LEVELS) --pairs-per-model 10 \
+		--seed 0 --shared $(SHARED) --out bench/work/data
+
+bench-data-tune: setup
+	$(BIN)/python -m data_scripts.make_benchmark generate --levels $(BENCH_LEVELS) --pairs-per-model 10 \
+		--seed 1 --shared $(SHARED) --out bench/work/data-seed1
+
 bench: setup
 	$(BIN)/python -m data_scripts.bench_compare --out bench/RESULTS.md
 

@@ -188,3 +188,192 @@ def test_shipped_poses_and_real_ground_truth():
     assert 0.5 <= pair.scale <= 2.0
     assert np.median(tree.query(transform(pair.T_gt, pair.source))[0]) < 1e-3
     assert np.median(tree.query(pair.source)[0]) > 1e-2
+
+
+# ------------------------------------------------------------------------------------------ issue 9 levels
+def _on_model(model: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Distance of each point to the nearest model point."""
+    return cKDTree(model).query(pts)[0]
+
+
+def test_part_level_patch_fraction_and_direction(tmp_path, bunny):
+    diag = bbox_diagonal(bunny)
+    sigma = mb.PART["noise"] * diag
+    rows = mb.generate_special({"bunny": bunny}, ["part"], 4, 0, tmp_path, ["ply"], n_source=20000)
+    assert [r["patch"] for r in rows] == ["source", "target", "source", "target"]  # direction alternates with k
+    for k, r in enumerate(rows):
+        fraction = float(r["patch_fraction"])
+        assert 0.15 <= fraction <= 0.40
+        pair, frac2 = mb.make_part_pair(bunny, mb.pair_rng(0, "part", "bunny", k), patch_is_source=(k % 2 == 0))
+        assert frac2 == pytest.approx(fraction, abs=1e-4)
+        patch, whole = (pair.source, pair.target) if k % 2 == 0 else (pair.target, pair.source)
+        p_out, w_out = (pair.src_outlier, pair.tgt_outlier) if k % 2 == 0 else (pair.tgt_outlier, pair.src_outlier)
+        if k % 2 == 0:
+            patch = transform(pair.T_gt, patch)
+        else:
+            whole = transform(pair.T_gt, whole)
+        assert abs(p_out.mean() - 0.10) < 2e-3 and abs(w_out.mean() - 0.10) < 2e-3
+        inl_p, inl_w = patch[~p_out], whole[~w_out]
+        assert np.median(_on_model(bunny, inl_p)) < 2 * sigma and np.median(_on_model(bunny, inl_w)) < 2 * sigma
+        # the patch is compact and covers `fraction` of the model; the whole covers all of it
+        d = np.linalg.norm(bunny - inl_p.mean(axis=0), axis=1)
+        covered = cKDTree(inl_p).query(bunny)[0] < 3 * sigma
+        assert fraction - 0.05 < covered.mean() < fraction + 0.08
+        assert d[covered].max() < 1.3 * np.quantile(d, fraction + 0.08)  # one blob, not scattered
+        assert (cKDTree(inl_w).query(bunny)[0] < 3 * sigma).mean() > 0.95
+        # whole at 1/4 of the patch's density (the patch keeps all its model points here)
+        assert len(inl_w) == pytest.approx(len(bunny) / 4, rel=0.01)
+        assert len(inl_p) == pytest.approx(fraction * len(bunny), rel=0.01)
+        ov_patch, ov_whole = (pair.overlap_src, pair.overlap_tgt) if k % 2 == 0 else (pair.overlap_tgt, pair.overlap_src)
+        assert ov_patch == 1.0 and ov_whole == pytest.approx(fraction, abs=0.03)
+        assert 0.5 <= pair.scale <= 2.0
+
+
+def test_lowoverlap_level_overlap_in_range(bunny):
+    diag = bbox_diagonal(bunny)
+    for k in range(4):
+        pair = mb.make_lowoverlap_pair(bunny, mb.pair_rng(0, "lowoverlap", "bunny", k), n_source=8000)
+        assert 0.23 <= pair.overlap_src <= 0.52 and 0.23 <= pair.overlap_tgt <= 0.52
+        assert 0.05 - 2e-3 <= pair.src_outlier.mean() <= 0.10 + 2e-3
+        assert len(pair.target) / len(pair.source) == pytest.approx(0.25, abs=2e-3)
+        # geometric check of the overlap: source inliers (mapped) near the target's crop of the model
+        src = transform(pair.T_gt, pair.source[~pair.src_outlier])
+        tgt = pair.target[~pair.tgt_outlier]
+        assert np.median(_on_model(bunny, src)) < 2 * mb.LOWOVERLAP["noise"] * diag
+        near = cKDTree(tgt).query(src)[0] < 0.02 * diag
+        assert pair.overlap_src - 0.1 < near.mean() < pair.overlap_src + 0.15
+
+
+def test_sfm_level_density_holes_noise_and_floaters(bunny):
+    diag = bbox_diagonal(bunny)
+    rng_uniform = np.random.default_rng(5)
+    for k in range(2):
+        pair = mb.make_sfm_pair(bunny, mb.pair_rng(0, "sfm", "bunny", k), n_source=20000)
+        assert 0.5 <= pair.scale <= 2.0
+        assert 0.05 - 2e-3 <= pair.tgt_outlier.mean() <= 0.10 + 2e-3 and not pair.src_outlier.any()
+        tgt, floaters = pair.target[~pair.tgt_outlier], pair.target[pair.tgt_outlier]
+        # density across the surface: target inliers per model point in balls of 4 % of the diagonal
+        r = 0.04 * diag
+        n_model = np.array([len(x) for x in cKDTree(bunny).query_ball_point(bunny[::20], r)])
+        n_tgt = np.array([len(x) for x in cKDTree(tgt).query_ball_point(bunny[::20], r)])
+        ratio = n_tgt[n_model >= 50] / n_model[n_model >= 50]
+        assert np.quantile(ratio[ratio > 0], 0.95) / np.quantile(ratio[ratio > 0], 0.05) >= 10
+        assert (ratio == 0).mean() > 0.01  # holes: regions of the model with no target point
+        # clustered floaters: much closer to each other than as many uniform points in the same box
+        lo, hi = pair.target.min(0), pair.target.max(0)
+        uniform = rng_uniform.uniform(lo, hi, size=floaters.shape)
+        nn_f = cKDTree(floaters).query(floaters, k=2)[0][:, 1]
+        nn_u = cKDTree(uniform).query(uniform, k=2)[0][:, 1]
+        assert np.median(nn_f) < 0.4 * np.median(nn_u)
+        assert np.median(_on_model(bunny, floaters)) < 0.08 * diag  # near the surface
+        # source: clean-ish scan-like crop of 70-100 % of the model
+        src = transform(pair.T_gt, pair.source)
+        assert len(src) == 20000 and np.median(_on_model(bunny, src)) < 2 * mb.SFM["src_noise"] * diag
+
+
+def test_anisotropic_noise():
+    camera = np.array([0.6, 0.0, 0.8])
+    noise = mb.anisotropic_noise(50000, camera, 0.01, 0.002, np.random.default_rng(0))
+    w, v = np.linalg.eigh(np.cov(noise.T))
+    assert np.sqrt(w[-1]) == pytest.approx(0.01, rel=0.03) and np.sqrt(w[:2]) == pytest.approx([0.002] * 2, rel=0.03)
+    assert abs(v[:, -1] @ camera) > 0.999
+
+
+def test_slab_pair_overlap_and_horizontal_windows(bunny):
+    for overlap in (0.25, 0.5):
+        a, b = mb.slab_pair(bunny, overlap, 0.9, np.random.default_rng(1))
+        assert (a & b).sum() / a.sum() == pytest.approx(overlap, abs=0.01)
+        assert (a & b).sum() / b.sum() == pytest.approx(overlap, abs=0.01)
+    # with a plane normal the windows slide perpendicular to it: moving points along it changes nothing
+    up = np.array([0.0, 0.0, 1.0])
+    lifted = bunny + np.outer(np.random.default_rng(2).normal(size=len(bunny)), up)
+    m1 = mb.slab_pair(bunny, 0.4, 0.9, np.random.default_rng(3), up)
+    m2 = mb.slab_pair(lifted, 0.4, 0.9, np.random.default_rng(3), up)
+    np.testing.assert_array_equal(m1[0], m2[0])
+    np.testing.assert_array_equal(m1[1], m2[1])
+
+
+SHARED = mb.default_shared()
+needs_shared = pytest.mark.skipif(
+    SHARED is None or not all((SHARED / rel).is_file() for rel in [*mb.SCENE_FILES.values(), mb.KITCHEN_GT_LOG]),
+    reason="shared data folder (../shared/data) with the scene files not available")
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return mb.load_scenes(SHARED)
+
+
+@needs_shared
+def test_scene_window_pairs_ground_truth(scenes):
+    clouds, _ = scenes
+    for name in ("nclt", "redkitchen0"):
+        scene = clouds[name]
+        for k in range(2):
+            pair = mb.make_scene_window_pair(scene, mb.pair_rng(0, "scene", name, k), n_source=6000,
+                                             up=mb.SCENE_UP.get(name))
+            assert 0.23 <= pair.overlap_src <= 0.62 and 0.23 <= pair.overlap_tgt <= 0.62
+            assert 0.5 <= pair.scale <= 2.0
+            assert abs(pair.src_outlier.mean() - 0.05) < 2e-3
+            assert 1 / 4 - 0.01 <= len(pair.target) / len(pair.source) <= 1 / 2 + 0.01
+            src = transform(pair.T_gt, pair.source[~pair.src_outlier])
+            sigma_max = mb.SCENE["noise_hi"] * bbox_diagonal(scene)
+            assert np.median(_on_model(scene, src)) < 2 * sigma_max  # the truth maps the source onto the scene
+            assert np.median(_on_model(scene, pair.source)) > 5 * sigma_max  # and the source was moved
+
+
+@needs_shared
+def test_scene_real_kitchen_pair(tmp_path, scenes):
+    clouds, T_4to0 = scenes
+    frag4 = cKDTree(clouds["redkitchen4"])
+    rows = mb.generate_scene({"redkitchen0": clouds["redkitchen0"], "redkitchen4": clouds["redkitchen4"]}, T_4to0,
+                             0, tmp_path, ["ply"], n_source=4000, windows_per_scene=0, real_pairs=2)
+    assert [r["model"] for r in rows] == ["redkitchen0>4"] * 2
+    for r in rows:
+        src, tgt = read_points(tmp_path / r["source"]), read_points(tmp_path / r["target"])
+        T = read_matrix(tmp_path / r["gt"])
+        assert len(src) == 4000 and 1000 <= len(tgt) <= 2000
+        assert (frag4.query(transform(T, src))[0] < 0.03).mean() > 0.3  # ~half of fragment 0 overlaps 4
+        assert (frag4.query(src)[0] < 0.03).mean() < 0.05
+
+
+def test_scene_missing_shared_file_is_named(tmp_path):
+    (tmp_path / "real" / "nclt_lidar").mkdir(parents=True)
+    with pytest.raises(Exception, match="cloud_bin_0.ply"):
+        mb.load_scenes(tmp_path)
+
+
+def test_new_levels_deterministic_and_independent(tmp_path, bunny):
+    small = {"bunny": bunny[::4]}
+    a = mb.generate_special(small, ["part", "lowoverlap", "sfm"], 2, 3, tmp_path / "a", ["ply", "xyz"], n_source=1500)
+    b = mb.generate_special(small, ["sfm"], 2, 3, tmp_path / "b", ["ply", "xyz"], n_source=1500)
+    assert len(a) == 6 and len(b) == 2
+    for rel in ("sfm/sfm_bunny_0_src.ply", "sfm/sfm_bunny_1_tgt.xyz", "sfm/sfm_bunny_1_gt.txt", "sfm/pairs.csv"):
+        assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
+    c = mb.generate_special(small, ["sfm"], 2, 4, tmp_path / "c", ["ply", "xyz"], n_source=1500)  # another seed
+    assert (tmp_path / "c" / "sfm/sfm_bunny_0_gt.txt").read_bytes() != (tmp_path / "b" / "sfm/sfm_bunny_0_gt.txt").read_bytes()
+    assert len(c) == 2
+
+
+@pytest.mark.skipif(SHARED is None or not (SHARED / mb.DRAGON_SCANS / mb.DRAGON_POSES).is_file(),
+                    reason="shared dragon scans not available")
+def test_real_level_three_groups_and_ground_truth(tmp_path):
+    scans, poses = mb.load_scans()
+    dragon, dposes = mb.load_dragon_scans(SHARED)
+    recon = read_points(DATA / "models" / "bunny.ply")
+    assert len(mb.REAL_PAIRS) * mb.REAL_DRAWS + len(mb.REAL_DRAGON_PAIRS) * mb.REAL_DRAWS_DRAGON + 6 >= 30
+    rows = mb.generate_real_all(scans, poses, dragon, dposes, recon, 0, tmp_path, ["ply"], n_source=1500,
+                                draws=2, dragon_draws=1)
+    assert len(rows) == 12 + 6 + 6 and len({r["pair_id"] for r in rows}) == len(rows)
+    assert {r["model"] for r in rows} == {"bunny_scans", "dragon_scans", "bunny_scan2recon"}
+    by_id = {r["pair_id"]: r for r in rows}
+    # draws of the same scan pair differ (another similarity)
+    assert read_matrix(tmp_path / by_id["real_bun045_to_bun000"]["gt"]).tolist() != \
+        read_matrix(tmp_path / by_id["real_bun045_to_bun000_d1"]["gt"]).tolist()
+    for r in rows[::3]:
+        src, tgt, T = (read_points(tmp_path / r["source"]), read_points(tmp_path / r["target"]),
+                       read_matrix(tmp_path / r["gt"]))
+        d = cKDTree(tgt).query(transform(T, src))[0]
+        # the overlapping part lands on the (sparse: 1/4 of 1500 points) target within a few mm; unmoved it does not
+        assert np.quantile(d, 0.3) < 0.006, r["pair_id"]
+        assert np.quantile(cKDTree(tgt).query(src)[0], 0.3) > 3 * np.quantile(d, 0.3)
