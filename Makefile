@@ -9,13 +9,14 @@ DEMO   ?= demo_out
 BENCH_LEVELS ?= easy,cross,hard,real,part,lowoverlap,sfm,scene
 SHARED       ?= ../shared/data
 
-.PHONY: setup system-deps browser-deps demo test bench-engine clean help
+.PHONY: setup system-deps browser-deps demo test bench-engine bench-engine-tune clean help
 
 help:
 	@echo "make demo          set up and run gctr batch on a small cross-source set (results in $(DEMO)/)"
 	@echo "make test          set up and run the test suite"
-	@echo "make bench-engine  full engine benchmark -> bench/ENGINE.md (tens of minutes)"
-	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the same pairs -> bench/RESULTS.md (~15 min)"
+	@echo "make bench-engine  full engine benchmark on the report set (seed 0) -> bench/ENGINE.md (tens of minutes)"
+	@echo "make bench-engine-tune  the same on the tuning set (seed 1) -> bench/work/ENGINE-seed1.md"
+	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the report set -> bench/RESULTS.md (long)"
 	@echo "make bench-quick   the same on 15 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
 	@echo "make bench-data       generate the REPORT set (--seed 0, all levels) -> bench/work/data"
 	@echo "make bench-data-tune  generate the TUNING set (--seed 1, all levels) -> bench/work/data-seed1"
@@ -64,8 +65,13 @@ demo: setup
 test: setup browser-deps
 	$(BIN)/python -m pytest -q
 
-bench-engine: setup
-	$(BIN)/python -m data_scripts.bench_engine --levels easy,cross,hard,real --out bench/ENGINE.md
+# Report set (--seed 0) -> bench/ENGINE.md + bench/confidence_tradeoff.png; tuning set (--seed 1) -> bench/work/.
+bench-engine: bench-data
+	$(BIN)/python -m data_scripts.bench_engine --seed 0 --data bench/work/data --levels $(BENCH_LEVELS) --out bench/ENGINE.md
+
+bench-engine-tune: bench-data-tune
+	$(BIN)/python -m data_scripts.bench_engine --seed 1 --data bench/work/data-seed1 --levels $(BENCH_LEVELS) \
+		--out bench/work/ENGINE-seed1.md --csv bench/work/seed1_pairs.csv
 
 clean:
 	rm -rf $(DEMO) .pytest_cache build *.egg-info

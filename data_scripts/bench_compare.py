@@ -7,10 +7,11 @@
 
 Steps:
 
-1. **Pairs.** ``python -m data_scripts.make_benchmark generate --levels easy,cross,hard --pairs-per-model N
-   --seed 0 --real`` into ``<work>/data`` (the same command as ``make bench-engine``, so the full run uses
-   the pairs of ``bench/ENGINE.md``; ``--quick`` uses 1 pair per model and level — the first pair of each,
-   identical to the full run's — plus the 6 real scan pairs). Skipped when ``<work>/data`` already holds
+1. **Pairs.** ``python -m data_scripts.make_benchmark generate --levels
+   easy,cross,hard,real,part,lowoverlap,sfm,scene --pairs-per-model N --seed S`` into ``<work>/data`` (the
+   pairs of ``make bench-engine`` for N = 10; S = 0 the report set, S = 1 the tuning set, work folder
+   ``compare-<mode>-seed1``); ``--quick`` uses 1 pair per model/scene and level and 1 real pair per group —
+   the first of each, identical to the full run's. Skipped when ``<work>/data`` already holds
    the output of the same command. The pairs and the success thresholds (``success:`` of the default
    config) are fixed before any method runs.
 2. **Runs.** For every method and level, the user-facing command
@@ -67,20 +68,41 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from data_scripts.common import machine_info  # noqa: E402
+from data_scripts.common import (  # noqa: E402
+    CONFIDENCE_THRESHOLDS,
+    DIAGNOSIS_MARGIN,
+    confidence_sweep,
+    diagnose,
+    diagnosis_table,
+    machine_info,
+    outcome,
+    outcome_table,
+    plot_confidence_tradeoff,
+    sweep_table,
+    usable_transform,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("gctr", "icp", "fpfh_ransac", "fgr", "cpd")
 GLOBAL_BASELINES = ("fpfh_ransac", "fgr")
 SYNTHETIC_LEVELS = ("easy", "cross", "hard")
-ALL_LEVELS = (*SYNTHETIC_LEVELS, "real")
+ALL_LEVELS = (*SYNTHETIC_LEVELS, "real", "part", "lowoverlap", "sfm", "scene")
 #: levels whose pairs differ in density, outliers/partial overlap and scale (goal: gctr strictly better)
-CROSS_SOURCE_LEVELS = ("cross", "hard", "real")
+CROSS_SOURCE_LEVELS = ("cross", "hard", "real", "part", "lowoverlap", "sfm", "scene")
+TRADEOFF_PNG = "compare_confidence_tradeoff.png"
 LEVEL_DESCRIPTIONS = {
     "easy": "1/2 density, 0.25% noise, no outliers, 90–100% crops, scale 0.5–2",
     "cross": "1/4 density, 0.5% noise, 10% outliers, 70–90% crops, scale 0.5–2",
     "hard": "1/8 density, 1% noise, 30% outliers, 50–90% crops, scale 0.25–4",
-    "real": "raw bunny range scans (true relative pose), random similarity on the source, 1/4 density target",
+    "real": "real range scans with their true relative pose (bunny scan pairs x3 draws, dragon scan pairs x2, bunny "
+            "scans vs the reconstruction), random similarity on the source, 1/4 density target",
+    "part": "a 15–40% ball patch vs the whole model at 1/4 density (patch as source / as target alternately), 0.5% "
+            "noise, 10% outliers, scale 0.5–2",
+    "lowoverlap": "two slab crops sharing 25–50% of their points, 1/4 density, 0.5% noise, 5–10% outliers, scale 0.5–2",
+    "sfm": "photogrammetry-like target (20x density field, 2–4 holes, 1% depth / 0.2% lateral noise, 5–10% clustered "
+           "floaters) vs a 70–100% crop with 0.25% noise, scale 0.5–2",
+    "scene": "windows (25–60% overlap) of 3DMatch redkitchen fragments 0 and 4 and an NCLT LiDAR sweep, density "
+             "1/4–1/2, 0.3–0.5% noise, 5% outliers, scale 0.5–2; plus the real redkitchen 0→4 pair",
 }
 METHOD_DESCRIPTIONS = {
     "gctr": "GCTR engine, default config (`engine:` section)",
@@ -126,15 +148,14 @@ class Settings:
     n_source: int | None = None  # source points per pair (None: the generator's default, 20000)
 
     def generate_command(self, data: Path) -> list[str]:
-        synthetic = [lv for lv in self.levels if lv in SYNTHETIC_LEVELS]
-        cmd = [sys.executable, "-m", "data_scripts.make_benchmark", "generate", "--levels", ",".join(synthetic),
+        cmd = [sys.executable, "-m", "data_scripts.make_benchmark", "generate", "--levels", ",".join(self.levels),
                "--pairs-per-model", str(self.pairs_per_model), "--seed", str(self.seed), "--out", str(data)]
         if self.models:
             cmd += ["--models", ",".join(self.models)]
         if self.n_source is not None:
             cmd += ["--n-source", str(self.n_source)]
-        if "real" in self.levels:
-            cmd.append("--real")
+        if self.mode == "quick" and "real" in self.levels:
+            cmd += ["--real-per-group", "1"]
         return cmd
 
 
@@ -145,8 +166,6 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
     bad = [m for m in methods if m not in METHODS] + [lv for lv in levels if lv not in ALL_LEVELS]
     if bad:
         raise BenchError(f"unknown method(s)/level(s): {', '.join(bad)}")
-    if not any(lv in SYNTHETIC_LEVELS for lv in levels):
-        raise BenchError("at least one synthetic level (easy, cross, hard) is needed")
     return Settings(
         mode="quick" if quick else "full",
         pairs_per_model=args.pairs_per_model if args.pairs_per_model is not None else (1 if quick else 10),
@@ -370,7 +389,27 @@ def describe_code(start: dict[str, str], end: dict[str, str]) -> str:
 
 
 # ============================================================================================ rows
-def load_rows(work: Path, data: Path, methods: tuple[str, ...], levels: tuple[str, ...]) -> list[dict[str, Any]]:
+MATRIX_COLUMNS = tuple(f"m{i}{j}" for i in range(4) for j in range(4))
+
+
+def _matrix(t: dict[str, str] | None) -> np.ndarray | None:
+    """The 4x4 of a ``transforms.csv`` row, None when its cells are empty (a failed pair)."""
+    if not t:
+        return None
+    try:
+        return np.array([float(t[c]) for c in MATRIX_COLUMNS]).reshape(4, 4)
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _within(e: dict[str, str], thresholds: dict[str, float]) -> bool:
+    return (_float(e.get("rot_err_deg")) < thresholds["rotation_deg"]
+            and _float(e.get("trans_err_rel")) < thresholds["translation_rel"]
+            and _float(e.get("scale_err")) < thresholds["scale"])
+
+
+def load_rows(work: Path, data: Path, methods: tuple[str, ...], levels: tuple[str, ...],
+              thresholds: dict[str, float] | None = None) -> list[dict[str, Any]]:
     """One row per (method, pair): the batch outputs joined with the manifest; a pair without a row
     in ``transforms.csv`` counts as failed."""
     rows: list[dict[str, Any]] = []
@@ -395,6 +434,18 @@ def load_rows(work: Path, data: Path, methods: tuple[str, ...], levels: tuple[st
                 for k in ("rot_err_deg", "trans_err", "trans_err_rel", "scale_err", "tm_err"):
                     row[k] = _float(e[k]) if ok else math.inf
                 row["success"] = bool(ok and e["success"] == "true")
+                # issue 9: confidence column of transforms.csv (NaN when the batch has none or the method
+                # returns NaN) and the would-be success of the returned matrix whatever the status (None when
+                # the row has no usable matrix: failed rows of the batch runner have empty matrix cells)
+                row["confidence"] = _float(t.get("confidence")) if t else math.nan
+                mat = _matrix(t)
+                row["matrix"] = mat
+                if ok:
+                    row["would_succeed"] = row["success"]
+                elif mat is not None and usable_transform(mat) and e and thresholds:
+                    row["would_succeed"] = _within(e, thresholds)
+                else:
+                    row["would_succeed"] = None
                 rows.append(row)
     return rows
 
@@ -642,6 +693,8 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
              f"(`-j {s['workers']}`); rows are the batch runner's `transforms.csv` / `tm_errors.csv`.")
     L.append("")
 
+    L.extend(render_verdicts(rows, methods, levels, meta.get("min_confidence")))
+
     # goals
     L.append("## Goals of issue 4, item 3")
     L.append("")
@@ -803,6 +856,75 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
     return "\n".join(L)
 
 
+def render_verdicts(rows, methods, levels, configured: float | None) -> list[str]:
+    """Issue 9: success / silent wrong / honest failures per method and level, the confidence threshold's
+    trade-off per method (table + PNG) and gctr's failure diagnostics."""
+    L = ["## Verdicts: success, silent wrong, honest failures (issue 9)", "",
+         "*Silent wrong*: status `ok` but not a success — a wrong matrix reported as good, the number users care most "
+         "about; *honest failure*: status `failed` (a refused pair, or one that could not run). Time: `runtime_s`.", ""]
+    groups = [(m, lv, [r for r in rows if r["method"] == m and r["level"] == lv]) for m in methods for lv in levels]
+    groups += [(m, "**all**", [r for r in rows if r["method"] == m]) for m in methods]
+    L += outcome_table(groups, "runtime_s")
+    L.append("")
+    L.append("Silent wrong over all levels: " + "; ".join(
+        f"{m} {sum(outcome(r) == 'silent_wrong' for r in rows if r['method'] == m)} of "
+        f"{sum(r['method'] == m for r in rows)} pairs "
+        f"({100.0 * sum(outcome(r) == 'silent_wrong' for r in rows if r['method'] == m) / max(1, sum(r['method'] == m for r in rows)):.1f}%)"
+        for m in methods) + ".")
+    L.append("")
+    sweeps = {m: confidence_sweep([r for r in rows if r["method"] == m], CONFIDENCE_THRESHOLDS) for m in methods}
+    no_conf = [m for m in methods if all(math.isnan(r.get("confidence", math.nan)) for r in rows if r["method"] == m)]
+    unknown = sum(1 for r in rows if r["status"] != "ok" and r.get("would_succeed") is None)
+    L += ["## Confidence threshold trade-off", "",
+          f"`engine.min_confidence` = {configured if configured is not None else '?'} (gctr's configured threshold; "
+          "the comparison methods have none). Offline sweep: at threshold t a pair is accepted when it has a usable "
+          "matrix and its confidence ≥ t. *Silent wrong*: accepted and wrong; *correct refused*: confidence < t "
+          "although the matrix was a success; % of the method's pairs. "
+          + (f"Methods without a confidence (NaN), reported as never refusing: {', '.join(no_conf)}. " if no_conf else "")
+          + (f"{unknown} failed rows have no matrix in `transforms.csv` (the batch runner leaves it empty), so their "
+             "would-be success is unknown and they count as refused at every threshold; `bench/ENGINE.md` has the "
+             "sweep with every failed pair's transform." if unknown else ""), ""]
+    L += sweep_table(sweeps, configured)
+    L += ["", f"![confidence trade-off]({TRADEOFF_PNG})", ""]
+    if any("diagnosis" in r for r in rows if r["method"] == "gctr"):
+        L += ["## gctr failure diagnostics", "",
+              "For each gctr pair that is not a success and has a matrix: the engine's own score "
+              "(`gctr_cli.engine.score_transform`) of the ground truth vs of the answer — truth higher by more than "
+              f"{DIAGNOSIS_MARGIN:g}: *search missed*; answer higher by more than {DIAGNOSIS_MARGIN:g}: *objective "
+              "can't tell*; else *precision*. *Not scored*: no matrix (failed rows).", ""]
+        L += diagnosis_table([r for r in rows if r["method"] == "gctr"], list(levels))
+        L.append("")
+    return L
+
+
+def diagnose_gctr(rows: list[dict[str, Any]], data: Path) -> None:
+    """Add ``score_truth``, ``score_answer``, ``diagnosis`` to gctr's unsuccessful rows that have a matrix
+    (in place; seeds as the batch runner derives them)."""
+    bad = [r for r in rows if r["method"] == "gctr" and outcome(r) != "success" and r.get("matrix") is not None
+           and usable_transform(r["matrix"])]
+    if not bad:
+        return
+    try:
+        from gctr_cli.engine import score_transform
+    except ImportError:
+        return
+    from gctr_cli.batch import derive_seed
+    from gctr_cli.config import Config
+    from gctr_cli.io import load_point_cloud, read_matrix
+
+    cfg = Config()
+    manifests = {lv: {m["pair_id"]: m for m in read_manifest_rows(data / lv / "pairs.csv")}
+                 for lv in {r["level"] for r in bad}}
+    for r in bad:
+        m = manifests[r["level"]][r["pair_id"]]
+        folder = data / r["level"]
+        src, tgt = load_point_cloud(folder / m["source"]), load_point_cloud(folder / m["target"])
+        seed = derive_seed(cfg.seed, r["pair_id"])
+        r["score_truth"] = float(score_transform(src, tgt, read_matrix(folder / m["gt"]), cfg.engine, seed))
+        r["score_answer"] = float(score_transform(src, tgt, r["matrix"], cfg.engine, seed))
+        r["diagnosis"] = diagnose(r["score_truth"], r["score_answer"])
+
+
 def limits_text(rows, stats, goals, methods, levels, profile, succ_th) -> list[str]:
     """Plain statements on each goal that is not met: what the numbers say limits it."""
     out: list[str] = []
@@ -873,14 +995,16 @@ def limits_text(rows, stats, goals, methods, levels, profile, succ_th) -> list[s
 
 
 def write_rows_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    cols = ["method", "level", "pair_id", "model", "status", "success", "rot_err_deg", "trans_err", "trans_err_rel",
-            "scale_err", "tm_err", "runtime_s", "fitness", "scale_gt", "overlap_src", "overlap_tgt", "message"]
+    cols = ["method", "level", "pair_id", "model", "status", "success", "outcome", "confidence", "would_succeed",
+            "rot_err_deg", "trans_err", "trans_err_rel", "scale_err", "tm_err", "runtime_s", "fitness", "scale_gt",
+            "overlap_src", "overlap_tgt", "score_truth", "score_answer", "diagnosis", "message"]
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
         w.writeheader()
         for r in rows:
-            w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in r.items()})
+            w.writerow({**{k: (repr(v) if isinstance(v, float) else v) for k, v in r.items() if k != "matrix"},
+                        "outcome": outcome(r)})
 
 
 def write_report(meta: dict[str, Any], runs: list[BatchRun], work: Path, data: Path, out: Path,
@@ -888,12 +1012,17 @@ def write_report(meta: dict[str, Any], runs: list[BatchRun], work: Path, data: P
     """Rows -> stats -> goals -> ``out`` (markdown) + the two PNGs next to it. Returns the stats and goals."""
     s = meta["settings"]
     methods, levels = tuple(s["methods"]), tuple(s["levels"])
-    rows = load_rows(work, data, methods, levels)
+    rows = load_rows(work, data, methods, levels, meta.get("success_thresholds"))
+    if meta.get("diagnose", True):
+        diagnose_gctr(rows, data)
     stats = summarise(rows, methods, levels)
     goals = evaluate_goals(stats, methods, levels)
     out.parent.mkdir(parents=True, exist_ok=True)
     plot_rotation_cdf(rows, methods, levels, out.parent / CDF_PNG, meta["success_thresholds"]["rotation_deg"])
     plot_times(rows, methods, out.parent / TIME_PNG)
+    plot_confidence_tradeoff({m: confidence_sweep([r for r in rows if r["method"] == m]) for m in methods},
+                             out.parent / TRADEOFF_PNG, meta.get("min_confidence"),
+                             "Confidence threshold trade-off (NaN confidence: never refuses)")
     write_rows_csv(work / "rows.csv", rows)
     ablations = []
     for run in ablation_runs:
@@ -909,7 +1038,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_scripts.bench_compare",
                                 description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="1 pair per model and level + the real pairs, -j 2")
+    p.add_argument("--quick", action="store_true", help="1 pair per model/scene and level, 1 real pair per group, -j 2")
     p.add_argument("--out", type=Path, default=None,
                    help="report, PNGs next to it (default bench/RESULTS.md; --quick: <work>/RESULTS.md)")
     p.add_argument("--work", type=Path, default=None,
@@ -917,12 +1046,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", help=f"comma-separated subset of {','.join(METHODS)}")
     p.add_argument("--levels", help=f"comma-separated subset of {','.join(ALL_LEVELS)}")
     p.add_argument("--pairs-per-model", type=int, default=None, help="default 10 (full) / 1 (quick)")
-    p.add_argument("--seed", type=int, default=0, help="generator seed (default 0)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="generator seed: 0 = the report set (default), 1 = the tuning set (work folder gets -seed1)")
     p.add_argument("--models", help="comma-separated model files for the generator (default: the 3 shipped models)")
     p.add_argument("--n-source", type=int, default=None, help="source points per pair (generator default 20000)")
     p.add_argument("-j", "--workers", type=int, default=None, help="workers per batch: default 1 (full) / 2 (quick)")
     p.add_argument("--profile-pairs", type=int, default=None, help="pairs per level for the stage profile")
     p.add_argument("--report-only", action="store_true", help="re-render the report from the runs in --work")
+    p.add_argument("--no-diagnose", action="store_true",
+                   help="skip gctr's failure diagnostics (engine score of the truth vs the answer)")
     return p
 
 
@@ -945,7 +1077,8 @@ def main(argv: list[str] | None = None) -> int:
     except BenchError as err:
         print(f"bench_compare: error: {err}", file=sys.stderr)
         return 2
-    work = args.work if args.work is not None else REPO_ROOT / "bench" / "work" / f"compare-{settings.mode}"
+    suffix = f"-seed{settings.seed}" if settings.seed != 0 else ""
+    work = args.work if args.work is not None else REPO_ROOT / "bench" / "work" / f"compare-{settings.mode}{suffix}"
     data = work / "data"
     meta_path = work / "run.json"
     if args.out is None:
@@ -988,6 +1121,8 @@ def main(argv: list[str] | None = None) -> int:
         "generate_command": shlex.join([Path(generate_command[0]).name, *generate_command[1:]]).replace(
             str(data), _rel(data)),
         "success_thresholds": Config().success.model_dump(),
+        "min_confidence": Config().engine.min_confidence,
+        "diagnose": not args.no_diagnose,
         "baseline_rss_mb": base_rss,
         "code_state": describe_code(code_at_start, code_state()),
         "total_wall_s": time.monotonic() - t0,

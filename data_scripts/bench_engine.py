@@ -1,6 +1,8 @@
 """Benchmark of the GCTR engine on the synthetic + real cross-source pairs (issue 2, "What must hold").
 
-    python -m data_scripts.bench_engine --levels easy,cross,hard,real --out bench/ENGINE.md
+    python -m data_scripts.bench_engine --out bench/ENGINE.md              # report set (--seed 0, all levels)
+    python -m data_scripts.bench_engine --seed 1 --out bench/work/ENGINE-seed1.md   # tuning set
+    python -m data_scripts.bench_engine --quick --pairs 1 --out /tmp/ENGINE.md     # smoke test
     python -m data_scripts.bench_engine --levels cross,hard --set engine.refine.enabled=false \\
         --variant no-refine --out bench/ENGINE.md --append
 
@@ -30,6 +32,18 @@ child that dies (e.g. killed for memory) or exceeds ``--time-limit`` is reported
 failure instead of hanging the pool. ``-j`` runs that many children at once; the speed target of the
 issue is for one worker (``-j 1``, the default) on the 2-core machine.
 
+Issue 9 adds, per pair: ``outcome`` (success / silent_wrong = status ok but wrong / failed),
+``confidence`` (``RegistrationResult.confidence``; NaN when the engine has none), ``would_succeed`` (the
+returned transform is within the success thresholds whatever the status; empty when it is the identity
+or not finite), and for every unsuccessful pair ``score_truth`` / ``score_answer`` (the engine's own
+score, ``gctr_cli.engine.score_transform``, of the ground truth and of the answer) with the
+``diagnosis`` (search missed / objective can't tell / precision, margin 0.02: ``data_scripts.common``).
+The report gets the verdict table per level, the confidence-threshold sweep (table and
+``confidence_tradeoff.png`` next to the report, configured threshold marked) and the diagnosis counts.
+
+Data: ``--seed 0`` (default) is the report set in ``bench/work/data``, ``--seed 1`` the tuning set in
+``bench/work/data-seed1``; each is generated on first use with all eight levels.
+
 Outputs: ``bench/work/<variant>_pairs.csv`` (one row per pair; compare runs with it) and the
 markdown report ``--out`` (``--append`` adds or replaces the section of this variant). Everything
 except timings, memory, date and load average is deterministic.
@@ -54,7 +68,19 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from data_scripts.common import machine_info
+from data_scripts.common import (
+    CONFIDENCE_THRESHOLDS,
+    DIAGNOSIS_MARGIN,
+    confidence_sweep,
+    diagnose,
+    diagnosis_table,
+    machine_info,
+    outcome,
+    outcome_table,
+    plot_confidence_tradeoff,
+    sweep_table,
+    usable_transform,
+)
 from gctr_cli.batch import flatten_dict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -62,7 +88,8 @@ DEFAULT_DATA = REPO_ROOT / "bench" / "work" / "data"
 DEFAULT_WORK = REPO_ROOT / "bench" / "work"
 DEFAULT_OUT = REPO_ROOT / "bench" / "ENGINE.md"
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
-GENERATE_ARGS = ["generate", "--levels", "easy,cross,hard", "--pairs-per-model", "10", "--seed", "0", "--real"]
+ALL_LEVELS = ("easy", "cross", "hard", "real", "part", "lowoverlap", "sfm", "scene")
+GENERATE_ARGS = ["generate", "--levels", ",".join(ALL_LEVELS), "--pairs-per-model", "10"]  # + --seed N
 THREAD_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 QUICK_PAIRS = 3
 
@@ -74,6 +101,7 @@ BASE_COLUMNS = [
     "pair_id", "level", "model", "n_source", "n_target", "seed", "status", "success",
     "rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "log_tm",
     "scale_gt", "scale_est", "fitness", "n_inliers", "iterations", "overlap",
+    "outcome", "confidence", "would_succeed", "score_truth", "score_answer", "diagnosis",
     "time_s", "cpu_s", "load_s",
 ]
 MEMORY_COLUMNS = ["rss_baseline_mb", "peak_rss_mb", "rss_increment_mb", "ru_maxrss_mb", "load_avg_1m"]
@@ -175,7 +203,34 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     ok_errors = (row["rot_err_deg"] < s.rotation_deg and row["trans_err_rel"] < s.translation_rel
                  and row["scale_err"] < s.scale)
     row["success"] = bool(row["status"] == "ok" and ok_errors)
+    # Issue 9: the verdict. A failed result still carries its best transform: whether it would have been a
+    # success feeds the offline confidence-threshold sweep (None: no usable transform, e.g. the identity).
+    row["confidence"] = float(getattr(result, "confidence", math.nan))
+    row["would_succeed"] = bool(ok_errors) if usable_transform(result.transform) else None
+    row["outcome"] = outcome(row)
+    if row["outcome"] != "success" and task.get("diagnose", True):
+        row.update(diagnose_failure(source, target, np.asarray(result.transform, dtype=float), T_gt, config.engine,
+                                    int(task["seed"])))
     return row
+
+
+def diagnose_failure(source, target, T_answer, T_gt, engine_config, seed: int) -> dict[str, Any]:
+    """The engine's own score (``gctr_cli.engine.score_transform``) of the truth and of the answer, and the
+    diagnosis (``data_scripts.common.diagnose``, margin ``DIAGNOSIS_MARGIN``). Without a usable answer
+    (identity / non-finite) only the truth is scored and the diagnosis is "search missed" when the truth
+    scores above the margin, else empty."""
+    try:
+        from gctr_cli.engine import score_transform
+    except ImportError:  # an engine without it: no diagnosis
+        return {}
+    out: dict[str, Any] = {"score_truth": float(score_transform(source, target, T_gt, engine_config, seed))}
+    if usable_transform(T_answer):
+        out["score_answer"] = float(score_transform(source, target, T_answer, engine_config, seed))
+        out["diagnosis"] = diagnose(out["score_truth"], out["score_answer"])
+    else:
+        out["score_answer"] = math.nan
+        out["diagnosis"] = "search missed" if out["score_truth"] > DIAGNOSIS_MARGIN else ""
+    return out
 
 
 def _child_main(task: dict[str, Any], conn: Any) -> None:
@@ -194,7 +249,8 @@ def _child_main(task: dict[str, Any], conn: Any) -> None:
 
 def _error_row(task: dict[str, Any], status: str, message: str) -> dict[str, Any]:
     return {"pair_id": task["pair_id"], "level": task["level"], "model": task["model"], "seed": task["seed"],
-            "status": status, "message": " ".join(message.split()), "success": False, "timings": {}}
+            "status": status, "message": " ".join(message.split()), "success": False, "timings": {},
+            "outcome": "failed", "would_succeed": None}
 
 
 # ============================================================================================ driver
@@ -316,13 +372,19 @@ def resolve_config(path: Path | None, overrides: list[str]) -> tuple[Any, dict[s
 
 
 # ============================================================================================ data
-def ensure_data(data: Path) -> Path:
-    """``data/pairs.csv``, generating the default benchmark there first if it is missing."""
+def default_data(seed: int) -> Path:
+    """``bench/work/data`` for the report set (seed 0), ``bench/work/data-seed<N>`` for another seed."""
+    return DEFAULT_DATA if seed == 0 else DEFAULT_DATA.with_name(f"data-seed{seed}")
+
+
+def ensure_data(data: Path, seed: int = 0) -> Path:
+    """``data/pairs.csv``, generating the default benchmark (all levels, generator ``--seed seed``) there first
+    if it is missing."""
     manifest = data / "pairs.csv"
     if manifest.is_file():
         return manifest
     cmd = [sys.executable, "-m", "data_scripts.make_benchmark", *GENERATE_ARGS[:1], "--out", str(data),
-           *GENERATE_ARGS[1:]]
+           *GENERATE_ARGS[1:], "--seed", str(seed)]
     print(f"{manifest} missing; generating: {shlex.join(cmd)}", file=sys.stderr, flush=True)
     subprocess.run(cmd, cwd=REPO_ROOT, check=True)
     if not manifest.is_file():
@@ -331,8 +393,8 @@ def ensure_data(data: Path) -> Path:
 
 
 def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
-               config_dict: dict[str, Any]) -> list[dict[str, Any]]:
-    """One task per selected pair, in manifest order (``--quick``: first 3 per model per level)."""
+               config_dict: dict[str, Any], quick_pairs: int = QUICK_PAIRS) -> list[dict[str, Any]]:
+    """One task per selected pair, in manifest order (``--quick``: first ``quick_pairs`` per model per level)."""
     from gctr_cli.batch import derive_seed
     from gctr_cli.manifest import ManifestError, read_manifest
 
@@ -353,7 +415,7 @@ def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
         if spec.gt is None:
             raise BenchError(f"{manifest}: pair {pid} has no ground truth (gt column)")
         n = per_group.get((level, model), 0)
-        if quick and n >= QUICK_PAIRS:
+        if quick and n >= quick_pairs:
             continue
         per_group[(level, model)] = n + 1
         tasks.append({"pair_id": pid, "level": level, "model": model, "source": str(spec.source),
@@ -361,7 +423,8 @@ def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
                       "config": config_dict})
     missing = [lv for lv in levels if not any(t["level"] == lv for t in tasks)]
     if missing:
-        raise BenchError(f"{manifest}: no pairs for level(s) {', '.join(missing)}")
+        raise BenchError(f"{manifest}: no pairs for level(s) {', '.join(missing)} (data generated by an older "
+                         f"generator? delete {manifest.parent} to regenerate it)")
     # Manifest order within the requested level order.
     return sorted(tasks, key=lambda t: levels.index(t["level"]))
 
@@ -475,6 +538,7 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
     if len(levels) > 1:
         groups.append(("all", rows))
     out: list[str] = [SECTION_BEGIN.format(info["variant"]), f"## Variant `{info['variant']}`", ""]
+    quick_note = f", --quick: first {info.get('quick_pairs', QUICK_PAIRS)} per model per level" if info["quick"] else ""
     overrides = ", ".join(f"`{o}`" for o in info["overrides"]) or "none"
     m = info["machine"]
     out += [
@@ -489,7 +553,7 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
         f"- Success: rotation < {success_cfg['rotation_deg']:g}°, translation < {success_cfg['translation_rel']:g} × "
         f"target bbox diagonal, scale error < {success_cfg['scale']:g}, and engine status `ok` (translation error "
         f"measured at the {_trans_at(rows)}, as the batch runner does; `gctr_cli.metrics.transform_errors`)",
-        f"- Data: `{info['data']}` ({len(rows)} pairs{', --quick: first 3 per model per level' if info['quick'] else ''});"
+        f"- Data: `{info['data']}` ({len(rows)} pairs{quick_note});"
         f" per-pair results: `{info['csv']}`",
         f"- Workers: {info['jobs']} (each pair in a fresh spawned process with 1 BLAS/OpenMP thread)"
         + ("" if info["jobs"] == 1 else " — several pairs at once: times are NOT one-worker figures"),
@@ -530,10 +594,12 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
             "scipy, the engine modules). Peak: `VmHWM` of the child (its own address space); `ru_maxrss` of a "
             "spawned child would include the driver's high-water mark, see the module docstring.", ""]
 
-    # targets of issue 2
+    out += render_verdicts(rows, levels, info)
+
+    # targets of issue 9
     targets = _targets(stats, rows, info)
     if targets:
-        out += ["### Targets (issue 2, \"What must hold\")", "", "| target | measured | holds |", "|---|---|---|"]
+        out += ["### Targets (issue 9, \"What must hold\")", "", "| target | measured | holds |", "|---|---|---|"]
         out += [f"| {t} | {mv} | {'yes' if ok else '**no**'} |" for t, mv, ok in targets]
         out.append("")
 
@@ -578,6 +644,51 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
     return "\n".join(out)
 
 
+def render_verdicts(rows: list[dict[str, Any]], levels: list[str], info: dict[str, Any]) -> list[str]:
+    """Issue 9: success / silent wrong / honest failures per level, the confidence threshold's trade-off
+    (table + ``info['plot']`` PNG) and the failure diagnostics."""
+    groups = [("gctr", lv, [r for r in rows if r["level"] == lv]) for lv in levels]
+    n_all = len(rows)
+    silent = sum(1 for r in rows if outcome(r) == "silent_wrong")
+    configured = info.get("min_confidence")
+    out = ["### Verdicts: success, silent wrong, honest failures", "",
+           "*Silent wrong*: status `ok` but not a success (a wrong matrix reported as good — the number users care "
+           "most about); *honest failure*: status `failed` (or the pair crashed / timed out). Times: `register()` "
+           "wall time.", ""]
+    out += outcome_table(groups + [("gctr", "**all**", rows)], "time_s")
+    out += ["", f"Silent wrong over all levels: **{silent} of {n_all} pairs "
+            f"({100.0 * silent / n_all if n_all else 0:.1f}%)**.", ""]
+
+    sweep = confidence_sweep(rows, CONFIDENCE_THRESHOLDS)
+    confs = [r.get("confidence") for r in rows if isinstance(r.get("confidence"), float)]
+    has_conf = any(not math.isnan(c) for c in confs)
+    out += ["### Confidence threshold trade-off", "",
+            f"Configured threshold `engine.min_confidence` = {_num(configured, 'g')}. Offline sweep over all pairs: "
+            "at threshold t a pair is accepted when its returned transform is usable (a failed result still carries "
+            "its best transform; the identity counts as none) and its confidence ≥ t. *Silent wrong*: accepted and "
+            "wrong; *correct refused*: confidence < t although the transform was a success. % of all "
+            f"{n_all} pairs." + ("" if has_conf else " **This engine returned no confidence (NaN): it never refuses, "
+                                 "so every row is the same.**"), ""]
+    out += sweep_table({"gctr": sweep}, configured)
+    if info.get("plot"):
+        out += ["", f"![confidence trade-off]({info['plot']})"]
+    out.append("")
+
+    out += ["### Failure diagnostics", "",
+            "For every pair that is not a success, the engine's own score (`gctr_cli.engine.score_transform`, in "
+            "[0, 1]) of the ground truth and of the answer: truth higher by more than "
+            f"{DIAGNOSIS_MARGIN:g} → *search missed* (the search never reached the right basin); answer higher by "
+            f"more than {DIAGNOSIS_MARGIN:g} → *objective can't tell* (a better objective or an ambiguity test is "
+            "needed); else *precision* (right basin, refinement not precise enough). *Not scored*: crashed / "
+            f"timed-out pairs, or no usable answer with the truth scoring ≤ {DIAGNOSIS_MARGIN:g}. Why 0.02: the "
+            "score of the same transform varies by up to 0.010 between engine seeds (its subsampling), measured on "
+            "20 pairs of all levels, and turning the truth by 1° changed it by less than 0.007; twice the seed "
+            "spread keeps noise from being read as a difference.", ""]
+    out += diagnosis_table(rows, levels)
+    out.append("")
+    return out
+
+
 def _trans_at(rows: list[dict[str, Any]]) -> str:
     kinds = sorted({r["trans_err_at"] for r in rows if "trans_err_at" in r})
     return " / ".join(kinds) if kinds else "source centroid"
@@ -605,22 +716,35 @@ def _contention_note(rows: list[dict[str, Any]], info: dict[str, Any]) -> list[s
     return [line]
 
 
+#: issue 9, "What must hold": minimum success rate per level
+SUCCESS_TARGETS = {"easy": 0.95, "cross": 0.95, "real": 0.95, "part": 0.95, "sfm": 0.95,
+                   "hard": 0.80, "lowoverlap": 0.80, "scene": 0.80}
+TIME_TARGET_S = 0.64 * 1.2  # "median time per pair at most 20% above today's 0.64 s on the 20k-point levels"
+SILENT_WRONG_TARGET = 0.01
+
+
 def _targets(stats: dict[str, Any], rows: list[dict[str, Any]], info: dict[str, Any]) -> list[tuple[str, str, bool]]:
     out = []
-    if "cross" in stats:
-        st = stats["cross"]
-        ok = st["pairs"] >= 30 and st["models"] >= 3 and st["success"] >= 0.95 * st["pairs"]
-        out.append(("`cross` level (1/4 density, 0.5% noise, 10% outliers, 70–90% crops): success ≥ 95% over "
-                    "≥ 30 pairs from ≥ 3 models",
-                    f"{_rate(st['success'], st['pairs'])}, {st['models']} models", ok))
+    for lv, goal in SUCCESS_TARGETS.items():
+        if lv not in stats:
+            continue
+        st = stats[lv]
+        ok = st["pairs"] >= 30 and st["models"] >= 3 and st["success"] >= goal * st["pairs"]
+        out.append((f"`{lv}`: success ≥ {100 * goal:.0f}% over ≥ 30 pairs from ≥ 3 models/scenes",
+                    f"{_rate(st['success'], st['pairs'])}, {st['models']} models/scenes", ok))
+    if rows:
+        silent = sum(1 for r in rows if outcome(r) == "silent_wrong")
+        out.append((f"silent wrong ≤ {100 * SILENT_WRONG_TARGET:.0f}% of all pairs over all levels",
+                    f"{_rate(silent, len(rows))}", silent <= SILENT_WRONG_TARGET * len(rows)))
     ran = [r for r in rows if "time_s" in r]
     big = [r for r in ran if r["n_source"] >= 15000]
     if big:
         med = _median([r["time_s"] for r in big])
         cpu = _median([r["cpu_s"] for r in big])
-        out.append(("median time < 1 s per pair (one worker, overlap search included), clouds of ~20k points",
+        out.append((f"median time ≤ {TIME_TARGET_S:.2f} s per pair (20% above 0.64 s; one worker), pairs with a "
+                    "≥ 15k-point source",
                     f"{med:.2f} s wall ({cpu:.2f} s CPU) over the {len(big)} pairs with a ≥ 15k-point source"
-                    + ("" if info["jobs"] == 1 else f" (with -j {info['jobs']})"), med < 1.0))
+                    + ("" if info["jobs"] == 1 else f" (with -j {info['jobs']})"), med <= TIME_TARGET_S))
     if ran:
         peak = max(r["peak_rss_mb"] for r in ran)
         out.append(("peak memory < 1 GB per pair", f"max {peak:.0f} MB (incl. interpreter baseline)", peak < 1024))
@@ -630,11 +754,16 @@ def _targets(stats: dict[str, Any], rows: list[dict[str, Any]], info: dict[str, 
 REPORT_HEADER = """# GCTR engine benchmark
 
 Generated by `data_scripts/bench_engine.py` (see its docstring for what is measured and how). Pairs:
-`python -m data_scripts.make_benchmark generate --levels easy,cross,hard --pairs-per-model 10 --seed 0 --real`
-(levels: `easy` 1/2 density, 0.25% noise, no outliers, 90–100% crops, scale in [0.5, 2]; `cross` 1/4
-density, 0.5% noise, 10% outliers, 70–90% crops, scale in [0.5, 2]; `hard` 1/8 density, 1% noise, 30%
-outliers, 50–90% crops, scale in [0.25, 4]; `real` raw bunny range scans with their true relative pose,
-a random similarity on the source and a 1/4 density target). Models: Stanford bunny and dragon,
+`python -m data_scripts.make_benchmark generate --levels easy,cross,hard,real,part,lowoverlap,sfm,scene
+--pairs-per-model 10 --seed 0` — the report set; the engine is tuned on `--seed 1` (`--seed 1` here). Levels:
+`easy` 1/2 density, 0.25% noise, no outliers, 90–100% crops, scale in [0.5, 2]; `cross` 1/4 density, 0.5%
+noise, 10% outliers, 70–90% crops; `hard` 1/8 density, 1% noise, 30% outliers, 50–90% crops, scale in
+[0.25, 4]; `real` real range scans with their true relative pose (bunny scan pairs, dragon scan pairs, bunny
+scans vs the reconstruction), a random similarity on the source, 1/4 density target; `part` a 15–40% patch
+against the whole model at 1/4 density (patch as source and as target, alternating), 0.5% noise, 10%
+outliers; `lowoverlap` 25–50% mutual overlap; `sfm` photogrammetry-like target (20x density variation,
+holes, depth-direction noise, clustered floaters); `scene` windows of the 3DMatch redkitchen fragments and an
+NCLT LiDAR sweep (25–60% overlap) plus the real redkitchen 0→4 pair. Models: Stanford bunny and dragon,
 3DMatch redkitchen. Each section below is one configuration variant.
 
 """
@@ -666,9 +795,14 @@ def write_report(out: Path, section: str, variant: str, append: bool) -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_scripts.bench_engine", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                   help="folder with pairs.csv (generated there if missing); default bench/work/data")
-    p.add_argument("--levels", default="easy,cross,hard,real", help="comma-separated levels (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="generator seed of the pairs: 0 = the report set (default, bench/work/data), 1 = the tuning "
+                        "set (bench/work/data-seed1); the engine is tuned on seed 1 and reported on seed 0")
+    p.add_argument("--data", type=Path, default=None,
+                   help="folder with pairs.csv (generated there with --seed if missing); default by --seed")
+    p.add_argument("--levels", default=",".join(ALL_LEVELS), help="comma-separated levels (default: %(default)s)")
+    p.add_argument("--no-diagnose", action="store_true",
+                   help="skip the failure diagnostics (engine score of the truth vs the answer)")
     p.add_argument("-c", "--config", type=Path, default=None,
                    help="YAML config (default: configs/default.yaml if it exists, else the built-in defaults)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -678,6 +812,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--append", action="store_true", help="add (or replace) this variant's section in --out")
     p.add_argument("--csv", type=Path, default=None, help="per-pair CSV (default bench/work/<variant>_pairs.csv)")
     p.add_argument("--quick", action="store_true", help=f"only the first {QUICK_PAIRS} pairs per model per level")
+    p.add_argument("--pairs", type=int, default=None, metavar="N",
+                   help=f"with --quick: N pairs per model per level instead of {QUICK_PAIRS}")
     p.add_argument("-j", "--jobs", type=int, default=1, help="pairs run at once (default 1: the speed target)")
     p.add_argument("--time-limit", type=float, default=600.0, help="seconds per pair before it is killed")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-pair progress lines")
@@ -736,8 +872,12 @@ def main(argv: list[str] | None = None) -> int:
             raise BenchError("--levels is empty")
         config_path = args.config if args.config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
         config, config_dict = resolve_config(config_path, args.overrides)
-        manifest = ensure_data(args.data)
-        tasks = load_tasks(manifest, levels, args.quick, config, config_dict)
+        data = args.data if args.data is not None else default_data(args.seed)
+        manifest = ensure_data(data, args.seed)
+        tasks = load_tasks(manifest, levels, args.quick, config, config_dict,
+                           args.pairs if args.pairs is not None else QUICK_PAIRS)
+        for t in tasks:
+            t["diagnose"] = not args.no_diagnose
     except BenchError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -754,6 +894,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r['pair_id']}: {r['traceback']}", file=sys.stderr)
     stages = stage_names(rows)
     write_csv(csv_path, rows, stages)
+    plot_name = "confidence_tradeoff.png" if args.variant == "default" else f"confidence_tradeoff_{args.variant}.png"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    plot_confidence_tradeoff({"gctr": confidence_sweep(rows)}, args.out.parent / plot_name,
+                             config.engine.min_confidence, f"gctr, variant {args.variant}: confidence threshold trade-off")
 
     def shown(p: Path) -> str:
         p = Path(p).resolve()
@@ -778,6 +922,9 @@ def main(argv: list[str] | None = None) -> int:
         "data": shown(manifest),
         "csv": shown(csv_path),
         "quick": args.quick,
+        "quick_pairs": args.pairs if args.pairs is not None else QUICK_PAIRS,
+        "min_confidence": config.engine.min_confidence,
+        "plot": plot_name,
         "jobs": args.jobs,
         "wall_s": wall,
         "code": code_state() + f"; fingerprint of the engine/config/metrics/io code + config file `{fingerprint}`"

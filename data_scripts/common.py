@@ -6,6 +6,7 @@ output bytes depend only on the array: the same array always gives the same file
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 from pathlib import Path
@@ -213,3 +214,178 @@ def machine_info() -> dict[str, str]:
     except (OSError, ValueError, IndexError):
         info["memory_gb"] = "?"
     return info
+
+
+# --------------------------------------------------------------------------------------------- verdicts
+# Shared by bench_engine (bench/ENGINE.md) and bench_compare (bench/RESULTS.md), issue 9. A result row is
+# a dict with at least ``status`` ("ok" / "failed" / anything else = the pair did not run) and ``success``
+# (status ok and errors within the config's success thresholds); for the confidence trade-off also
+# ``confidence`` (float in [0, 1], NaN when the method has none) and ``would_succeed`` (True / False: the
+# errors of the returned transform are / are not within the thresholds, whatever the status; None: no
+# usable transform, e.g. an empty matrix, the identity or a non-finite matrix).
+OUTCOMES = ("success", "silent_wrong", "failed")
+OUTCOME_LABELS = {"success": "success", "silent_wrong": "silent wrong", "failed": "honest failure"}
+CONFIDENCE_THRESHOLDS = tuple(i / 10 for i in range(10))
+#: failure diagnostics: engine scores (in [0, 1]) of the truth and of the answer closer than this are "equal"
+DIAGNOSIS_MARGIN = 0.02
+DIAGNOSES = ("search missed", "objective can't tell", "precision")
+
+
+def outcome(row: dict) -> str:
+    """``success`` (status ok, errors within the thresholds), ``silent_wrong`` (status ok, wrong) or
+    ``failed`` (any other status: an honest failure, or a pair that crashed / timed out)."""
+    if row.get("status") == "ok":
+        return "success" if row.get("success") else "silent_wrong"
+    return "failed"
+
+
+def outcome_counts(rows: list[dict]) -> dict[str, int]:
+    counts = {k: 0 for k in OUTCOMES}
+    for r in rows:
+        counts[outcome(r)] += 1
+    counts["pairs"] = len(rows)
+    return counts
+
+
+def usable_transform(mat) -> bool:
+    """A transform that can be scored: finite 4x4, not the identity, positive determinant of the linear part
+    (engines return the identity as the placeholder of a failed pair)."""
+    try:
+        m = np.asarray(mat, dtype=float).reshape(4, 4)
+    except (TypeError, ValueError):
+        return False
+    return bool(np.isfinite(m).all() and not np.allclose(m, np.eye(4)) and np.linalg.det(m[:3, :3]) > 0)
+
+
+def _is_nan(x) -> bool:
+    return x is None or (isinstance(x, float) and math.isnan(x))
+
+
+def confidence_sweep(rows: list[dict], thresholds=CONFIDENCE_THRESHOLDS) -> list[dict]:
+    """The confidence threshold's trade-off, offline: for each threshold ``t`` a pair is *accepted* when it
+    has a usable transform (``would_succeed`` not None) and ``confidence >= t`` (NaN confidence: always
+    accepted — a method without a confidence never refuses). Counts per threshold:
+
+    * ``silent_wrong``: accepted and wrong (``would_succeed`` False);
+    * ``correct_refused``: refused although the transform was right (``would_succeed`` True, ``conf < t``);
+    * ``success``: accepted and right; ``refused``: all the refused pairs; ``pairs``: all pairs.
+    """
+    out = []
+    for t in thresholds:
+        c = {"threshold": float(t), "pairs": len(rows), "success": 0, "silent_wrong": 0, "correct_refused": 0,
+             "refused": 0}
+        for r in rows:
+            ws = r.get("would_succeed")
+            conf = r.get("confidence", math.nan)
+            accepted = ws is not None and (_is_nan(conf) or conf >= t)
+            if not accepted:
+                c["refused"] += 1
+                c["correct_refused"] += int(ws is True)
+            elif ws:
+                c["success"] += 1
+            else:
+                c["silent_wrong"] += 1
+        out.append(c)
+    return out
+
+
+def diagnose(score_truth: float, score_answer: float, margin: float = DIAGNOSIS_MARGIN) -> str:
+    """Why a pair failed, from the engine's own score of the ground truth and of its answer: ``search missed``
+    (truth higher by more than ``margin``), ``objective can't tell`` (answer higher by more than ``margin``),
+    ``precision`` (equal within ``margin``: the right basin, not precise enough); ``''`` if either is NaN."""
+    if _is_nan(score_truth) or _is_nan(score_answer):
+        return ""
+    if score_truth > score_answer + margin:
+        return "search missed"
+    if score_answer > score_truth + margin:
+        return "objective can't tell"
+    return "precision"
+
+
+def _pct(n: int, total: int) -> str:
+    return f"{n} ({100.0 * n / total:.1f}%)" if total else "0"
+
+
+def _quantile(xs, q: float) -> float:
+    xs = [float(x) for x in xs if x is not None and math.isfinite(float(x))]
+    return float(np.quantile(xs, q)) if xs else math.nan
+
+
+def _t(x: float) -> str:
+    return "–" if _is_nan(x) else f"{x:.2f}"
+
+
+def outcome_table(groups: list[tuple[str, str, list[dict]]], time_key: str) -> list[str]:
+    """Markdown: one line per (method, level, rows) group: pairs, success, silent wrong, honest failures
+    (each with its % of the group's pairs), median and p90 of ``time_key``."""
+    out = ["| method | level | pairs | success | **silent wrong** | honest failures | median time (s) | p90 time (s) |",
+           "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for method, level, rows in groups:
+        c = outcome_counts(rows)
+        times = [r.get(time_key) for r in rows]
+        out.append(f"| {method} | {level} | {c['pairs']} | {_pct(c['success'], c['pairs'])} "
+                   f"| {_pct(c['silent_wrong'], c['pairs'])} | {_pct(c['failed'], c['pairs'])} "
+                   f"| {_t(_quantile(times, 0.5))} | {_t(_quantile(times, 0.9))} |")
+    return out
+
+
+def sweep_table(sweeps: dict[str, list[dict]], configured: float | None = None) -> list[str]:
+    """Markdown: per method (column pair) and threshold (row): silent wrong and correct-but-refused, each as a
+    count and % of the method's pairs; the configured threshold's row is marked."""
+    methods = list(sweeps)
+    head = "| threshold | " + " | ".join(f"{m}: silent wrong | {m}: correct refused" for m in methods) + " |"
+    out = [head, "|---:|" + "---:|---:|" * len(methods)]
+    thresholds = [c["threshold"] for c in next(iter(sweeps.values()))] if sweeps else []
+    for i, t in enumerate(thresholds):
+        mark = " (configured)" if configured is not None and abs(t - configured) < 1e-9 else ""
+        cells = []
+        for m in methods:
+            c = sweeps[m][i]
+            cells += [_pct(c["silent_wrong"], c["pairs"]), _pct(c["correct_refused"], c["pairs"])]
+        out.append(f"| {t:.2f}{mark} | " + " | ".join(cells) + " |")
+    return out
+
+
+def diagnosis_table(rows: list[dict], levels: list[str]) -> list[str]:
+    """Markdown: per level, the unsuccessful pairs by ``diagnosis`` (rows without one: ``not scored``)."""
+    cols = [*DIAGNOSES, "not scored"]
+    out = ["| level | unsuccessful | " + " | ".join(cols) + " |", "|---|---:|" + "---:|" * len(cols)]
+    for lv in [*levels, "all"]:
+        bad = [r for r in rows if (lv == "all" or r.get("level") == lv) and outcome(r) != "success"]
+        counts = {c: 0 for c in cols}
+        for r in bad:
+            d = r.get("diagnosis") or ""
+            counts[d if d in DIAGNOSES else "not scored"] += 1
+        name = "**all**" if lv == "all" else lv
+        out.append(f"| {name} | {len(bad)} | " + " | ".join(str(counts[c]) for c in cols) + " |")
+    return out
+
+
+def plot_confidence_tradeoff(sweeps: dict[str, list[dict]], path, configured: float | None = None,
+                             title: str = "Confidence threshold trade-off") -> None:
+    """PNG: silent wrong and correct-but-refused (% of all pairs) against the threshold, one colour per
+    method (solid: silent wrong, dashed: correct refused); the configured threshold as a vertical line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.0, 4.4))
+    for i, (m, sweep) in enumerate(sweeps.items()):
+        colour = f"C{i}"
+        ts = [c["threshold"] for c in sweep]
+        ax.plot(ts, [100.0 * c["silent_wrong"] / max(c["pairs"], 1) for c in sweep], "-o", color=colour, ms=3,
+                label=f"{m}: silent wrong")
+        ax.plot(ts, [100.0 * c["correct_refused"] / max(c["pairs"], 1) for c in sweep], "--s", color=colour, ms=3,
+                label=f"{m}: correct refused")
+    if configured is not None:
+        ax.axvline(configured, color="k", lw=1.0, ls=":", label=f"configured ({configured:g})")
+    ax.set_xlabel("confidence threshold (engine.min_confidence)")
+    ax.set_ylabel("% of all pairs")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

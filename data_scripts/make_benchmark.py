@@ -686,9 +686,11 @@ def load_dragon_scans(shared: Path | None) -> tuple[dict, dict]:
 
 def generate_real_all(scans: dict, poses: dict, dragon_scans: dict, dragon_poses: dict, recon: np.ndarray, seed: int,
                       out: Path, formats: list[str], n_source: int = 20000, pcd_encoding: str = "binary",
-                      draws: int = REAL_DRAWS, dragon_draws: int = REAL_DRAWS_DRAGON) -> list[dict]:
+                      draws: int = REAL_DRAWS, dragon_draws: int = REAL_DRAWS_DRAGON,
+                      per_group: int | None = None) -> list[dict]:
     """Level ``real`` (see ``REAL_DRAWS``): bunny scan pairs x ``draws``, dragon scan pairs x ``dragon_draws``,
-    bunny scan -> reconstruction pairs; model column ``bunny_scans`` / ``dragon_scans`` / ``bunny_scan2recon``."""
+    bunny scan -> reconstruction pairs; model column ``bunny_scans`` / ``dragon_scans`` / ``bunny_scan2recon``.
+    ``per_group``: only the first that many pairs of each group (quick runs); a pair does not change."""
     jobs = []  # (rng, pair id, model, src, tgt, pose_src, pose_tgt)
     for d in range(draws):
         for k, (s, t) in enumerate(REAL_PAIRS):
@@ -703,6 +705,14 @@ def generate_real_all(scans: dict, poses: dict, dragon_scans: dict, dragon_poses
     for k, s in enumerate(sorted({n for p in REAL_PAIRS for n in p})):
         jobs.append((pair_rng(seed, "real", f"{s}>recon", k), f"real_{s}_to_recon", "bunny_scan2recon",
                      scans[s], recon, poses[s], np.eye(4)))
+    if per_group is not None:
+        seen: dict[str, int] = {}
+        kept = []
+        for job in jobs:
+            seen[job[2]] = seen.get(job[2], 0) + 1
+            if seen[job[2]] <= per_group:
+                kept.append(job)
+        jobs = kept
     rows = []
     for rng, pid, model, src, tgt, pose_s, pose_t in jobs:
         pair = make_real_pair(src, tgt, pose_s, pose_t, rng, n_source)
@@ -829,12 +839,14 @@ def ship(shared: Path, out: Path) -> None:
               help="the shared raw data folder: scenes of level scene, dragon scans of level real")
 @click.option("--real-full-res", is_flag=True,
               help="real: read the full-resolution bunny scans from --shared instead of the shipped data/scans")
+@click.option("--real-per-group", type=click.IntRange(min=1), default=None,
+              help="real: only the first N pairs of each group (bunny scans, dragon scans, scan vs reconstruction)")
 @click.option("--formats", default="ply", show_default=True, help="formats cycled over pairs: ply,pcd,xyz")
 @click.option("--n-source", type=click.IntRange(min=10), default=20000, show_default=True)
 @click.option("--pcd-encoding", type=click.Choice(["binary", "ascii"]), default="binary", show_default=True,
               help="PCD DATA type (Open3D's legacy reader mis-reads binary float64 PCD)")
-def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full_res, formats, n_source,
-             pcd_encoding) -> None:
+def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full_res, real_per_group, formats,
+             n_source, pcd_encoding) -> None:
     """Generate synthetic (and optionally real) cross-source pairs with ground truth.
 
     \b
@@ -858,7 +870,8 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
         if real_full_res and shared is None:
             raise click.UsageError("--real-full-res needs --shared")
         recon = read_points(DATA_DIR / "models" / "bunny.ply")
-        rows += generate_real_all(*load_scans(shared=shared if real_full_res else None), *dragon, recon, seed, out, fmts, n_source, pcd_encoding=pcd_encoding)
+        rows += generate_real_all(*load_scans(shared=shared if real_full_res else None), *dragon, recon, seed, out,
+                                  fmts, n_source, pcd_encoding=pcd_encoding, per_group=real_per_group)
     rows += generate_special(loaded, special, pairs_per_model, seed, out, fmts, n_source, pcd_encoding)
     if scenes is not None:
         rows += generate_scene(*scenes, seed, out, fmts, n_source, windows_per_scene=pairs_per_model,

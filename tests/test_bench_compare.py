@@ -142,3 +142,129 @@ def test_tiny_end_to_end_run_and_report_only(tmp_path):
     out.unlink()
     assert bc.main([*argv, "--report-only"]) == 0
     assert out.read_text() == text
+
+
+# ------------------------------------------------------------------------------------------ issue 9 verdicts
+from data_scripts import common  # noqa: E402
+
+NAN = float("nan")
+# (status, success, confidence, would_succeed, runtime)
+VERDICT_ROWS = [("ok", True, 0.9, True, 1.0), ("ok", True, 0.2, True, 2.0), ("ok", False, 0.15, False, 3.0),
+                ("ok", False, 0.6, False, 4.0), ("failed", False, 0.05, True, 5.0), ("failed", False, NAN, None, 6.0)]
+
+
+def _verdict_rows(method="gctr", level="part"):
+    return [{"method": method, "level": level, "pair_id": f"{level}_{i}", "status": st, "success": su,
+             "confidence": c, "would_succeed": ws, "runtime_s": t}
+            for i, (st, su, c, ws, t) in enumerate(VERDICT_ROWS)]
+
+
+def test_outcomes_and_outcome_table():
+    rows = _verdict_rows()
+    assert [common.outcome(r) for r in rows] == ["success", "success", "silent_wrong", "silent_wrong", "failed", "failed"]
+    assert common.outcome({"status": "timeout", "success": False}) == "failed"
+    assert common.outcome_counts(rows) == {"success": 2, "silent_wrong": 2, "failed": 2, "pairs": 6}
+    table = common.outcome_table([("gctr", "part", rows)], "runtime_s")
+    assert table[2] == "| gctr | part | 6 | 2 (33.3%) | 2 (33.3%) | 2 (33.3%) | 3.50 | 5.50 |"
+
+
+def test_confidence_sweep_counts():
+    sweep = {round(c["threshold"], 1): c for c in common.confidence_sweep(_verdict_rows())}
+    assert list(sweep) == [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9]
+
+    def get(t):
+        c = sweep[t]
+        return c["success"], c["silent_wrong"], c["correct_refused"], c["refused"]
+
+    assert get(0.0) == (3, 2, 0, 1)  # the failed pair with a good transform is accepted at t = 0
+    assert get(0.1) == (2, 2, 1, 2)
+    assert get(0.2) == (2, 1, 1, 3)  # conf 0.2 >= 0.2 accepted; the wrong one at 0.15 refused
+    assert get(0.3) == (1, 1, 2, 4)
+    assert get(0.6) == (1, 1, 2, 4)  # conf 0.6 still accepted
+    assert get(0.7) == (1, 0, 2, 5)
+    assert get(0.9) == (1, 0, 2, 5)
+    # a method without confidence never refuses a usable transform
+    nan_rows = [{**r, "confidence": NAN} for r in _verdict_rows()]
+    assert {(c["silent_wrong"], c["correct_refused"]) for c in common.confidence_sweep(nan_rows)} == {(2, 0)}
+
+
+def test_sweep_table_marks_configured_threshold():
+    sweeps = {"gctr": common.confidence_sweep(_verdict_rows()),
+              "icp": common.confidence_sweep([{**r, "confidence": NAN} for r in _verdict_rows()])}
+    table = common.sweep_table(sweeps, configured=0.3)
+    assert table[0] == ("| threshold | gctr: silent wrong | gctr: correct refused | icp: silent wrong "
+                        "| icp: correct refused |")
+    assert table[2] == "| 0.00 | 2 (33.3%) | 0 (0.0%) | 2 (33.3%) | 0 (0.0%) |"
+    assert table[5] == "| 0.30 (configured) | 1 (16.7%) | 2 (33.3%) | 2 (33.3%) | 0 (0.0%) |"
+    assert len(table) == 12
+
+
+def test_diagnose_and_diagnosis_table():
+    assert common.diagnose(0.80, 0.50) == "search missed"
+    assert common.diagnose(0.50, 0.80) == "objective can't tell"
+    assert common.diagnose(0.50, 0.515) == "precision"
+    assert common.diagnose(0.50, 0.525) == "objective can't tell"
+    assert common.diagnose(NAN, 0.5) == ""
+    rows = [{"level": "hard", "status": "ok", "success": False, "diagnosis": "search missed"},
+            {"level": "hard", "status": "ok", "success": False, "diagnosis": "precision"},
+            {"level": "hard", "status": "ok", "success": True},
+            {"level": "part", "status": "failed", "success": False, "diagnosis": ""},
+            {"level": "part", "status": "ok", "success": False, "diagnosis": "objective can't tell"}]
+    table = common.diagnosis_table(rows, ["hard", "part"])
+    assert table[2] == "| hard | 2 | 1 | 0 | 1 | 0 |"
+    assert table[3] == "| part | 2 | 0 | 1 | 0 | 1 |"
+    assert table[4] == "| **all** | 4 | 1 | 1 | 1 | 1 |"
+
+
+def test_usable_transform():
+    import numpy as np
+
+    T = np.eye(4)
+    T[:3, 3] = 1.0
+    assert common.usable_transform(T) and not common.usable_transform(np.eye(4))
+    assert not common.usable_transform(np.zeros((4, 4))) and not common.usable_transform(None)
+    T[0, 0] = NAN
+    assert not common.usable_transform(T)
+
+
+def test_compare_render_verdicts_and_plot(tmp_path):
+    rows = _verdict_rows("gctr") + [{**r, "confidence": NAN} for r in _verdict_rows("icp")]
+    rows[2]["diagnosis"] = "search missed"
+    text = "\n".join(bc.render_verdicts(rows, ("gctr", "icp"), ("part",), 0.3))
+    assert "| gctr | part | 6 | 2 (33.3%) | 2 (33.3%) | 2 (33.3%) | 3.50 | 5.50 |" in text
+    assert "Silent wrong over all levels: gctr 2 of 6 pairs (33.3%); icp 2 of 6 pairs (33.3%)." in text
+    assert "| 0.30 (configured) | 1 (16.7%) | 2 (33.3%) | 2 (33.3%) | 0 (0.0%) |" in text
+    assert "never refusing: icp" in text
+    assert "2 failed rows have no matrix" in text  # one per method
+    assert "| part | 4 | 1 | 0 | 0 | 3 |" in text  # gctr's 4 unsuccessful pairs, one diagnosed
+    png = tmp_path / "t.png"
+    common.plot_confidence_tradeoff({m: common.confidence_sweep([r for r in rows if r["method"] == m])
+                                     for m in ("gctr", "icp")}, png, 0.3)
+    assert png.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_compare_load_rows_confidence_and_would_succeed(tmp_path):
+    data = tmp_path / "data"
+    _write(data / "part" / "pairs.csv", ["pair_id", "source", "target", "gt", "model", "level"],
+           [["p0", "s.ply", "t.ply", "g.txt", "bunny", "part"], ["p1", "s.ply", "t.ply", "g.txt", "bunny", "part"],
+            ["p2", "s.ply", "t.ply", "g.txt", "bunny", "part"]])
+    out = tmp_path / "results" / "gctr" / "part"
+    shifted = ["1", "0", "0", "1", "0", "1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1"]
+    cols = [*TRANSFORMS_COLUMNS, "confidence"] if "confidence" not in TRANSFORMS_COLUMNS else list(TRANSFORMS_COLUMNS)
+    ci = cols.index("confidence")
+
+    def trow(pid, status, cells, conf):
+        row = [pid, "s.ply", "t.ply", status, "", "1"] + cells + ["0.9", "0.01", "1.0", "1"]
+        row += [""] * (len(cols) - len(row))
+        row[ci] = conf
+        return row
+
+    _write(out / "transforms.csv", cols, [trow("p0", "ok", shifted, "0.8"), trow("p1", "failed", shifted, "0.1"),
+                                          trow("p2", "failed", [""] * 16, "")])
+    _write(out / "tm_errors.csv", ERRORS_COLUMNS, [["p0", "1.0", "0.1", "0.001", "0.01", "0.1", "true"],
+                                                   ["p1", "2.0", "0.1", "0.001", "0.01", "0.1", "false"]])
+    th = {"rotation_deg": 5.0, "translation_rel": 0.05, "scale": 0.05}
+    rows = {r["pair_id"]: r for r in bc.load_rows(tmp_path, data, ("gctr",), ("part",), th)}
+    assert rows["p0"]["confidence"] == 0.8 and rows["p0"]["would_succeed"] is True and rows["p0"]["success"]
+    assert rows["p1"]["confidence"] == 0.1 and rows["p1"]["would_succeed"] is True and not rows["p1"]["success"]
+    assert math.isnan(rows["p2"]["confidence"]) and rows["p2"]["would_succeed"] is None

@@ -175,3 +175,37 @@ def test_stage_table_and_failed_list_render():
     assert "other processes were running, but the pairs were not starved of CPU (median wall/CPU time ratio 1.07)" in text
     rows[1]["time_s"] = 6.0  # wall twice the CPU time: contention
     assert "they took CPU from the benchmark" in be.render_section(rows, ["cross"], info)
+
+
+# ------------------------------------------------------------------------------------------ issue 9 verdicts
+def test_render_verdicts_and_targets():
+    nan = float("nan")
+    rows = []
+    for i, (st, su, conf, ws, diag) in enumerate([
+            ("ok", True, 0.9, True, None), ("ok", False, 0.6, False, "search missed"),
+            ("ok", False, 0.15, False, "precision"), ("failed", False, 0.05, True, "objective can't tell")]):
+        rows.append({"pair_id": f"p{i}", "level": "part" if i < 2 else "scene", "model": f"m{i}", "status": st,
+                     "success": su, "confidence": conf, "would_succeed": ws, "time_s": float(i + 1),
+                     "cpu_s": float(i + 1), "n_source": 20000, "n_target": 5000, "peak_rss_mb": 300.0,
+                     "rss_increment_mb": 200.0, "rss_baseline_mb": 100.0, "load_s": 0.01,
+                     **({"diagnosis": diag} if diag else {})})
+    info = {"min_confidence": 0.1, "plot": "confidence_tradeoff.png", "jobs": 1}
+    text = "\n".join(be.render_verdicts(rows, ["part", "scene"], info))
+    assert "| gctr | part | 2 | 1 (50.0%) | 1 (50.0%) | 0 (0.0%) | 1.50 | 1.90 |" in text
+    assert "| gctr | scene | 2 | 0 (0.0%) | 1 (50.0%) | 1 (50.0%) | 3.50 | 3.90 |" in text
+    assert "Silent wrong over all levels: **2 of 4 pairs (50.0%)**." in text
+    assert "| 0.00 | 2 (50.0%) | 0 (0.0%) |" in text  # t = 0: the refused-but-right pair is accepted
+    assert "| 0.10 (configured) | 2 (50.0%) | 1 (25.0%) |" in text
+    assert "| 0.20 | 1 (25.0%) | 1 (25.0%) |" in text
+    assert "| 0.70 | 0 (0.0%) | 1 (25.0%) |" in text
+    assert "![confidence trade-off](confidence_tradeoff.png)" in text
+    assert "| part | 1 | 1 | 0 | 0 | 0 |" in text and "| scene | 2 | 0 | 1 | 1 | 0 |" in text
+    assert "returned no confidence" not in text
+    assert "returned no confidence" in "\n".join(
+        be.render_verdicts([{**r, "confidence": nan} for r in rows], ["part", "scene"], info))
+
+    stats = {lv: be._level_stats([r for r in rows if r["level"] == lv]) for lv in ("part", "scene")}
+    targets = {t[0].split(":")[0]: (t[1], t[2]) for t in be._targets(stats, rows, info)}
+    assert targets["`part`"] == ("1/2 (50.0%), 2 models/scenes", False)
+    assert targets["silent wrong ≤ 1% of all pairs over all levels"] == ("2/4 (50.0%)", False)
+    assert be.SUCCESS_TARGETS["scene"] == 0.80 and be.SUCCESS_TARGETS["sfm"] == 0.95
