@@ -60,6 +60,7 @@ class TensorConfig(_Strict):
     normal_weight: float = Field(1.0, ge=0, description="weight of the vertex-normal terms of the descriptor; 0 = angles only")
     sigma: float = Field(0.0, ge=0, description="descriptor bandwidth; 0 = mean kNN distance")
     first_order_weight: float = Field(1.0, ge=0, description="weight of the point-to-point term")
+    scale_filter: bool = Field(True, description="drop triangle matches whose perimeter ratio the overlap's scale prior rules out")
     first_order_sigma: float = Field(0.05, gt=0, description="point-term bandwidth / robust diameter")
 
 
@@ -92,6 +93,8 @@ class RefineConfig(_Strict):
     iterations: int = Field(30, ge=1, le=500)
     start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / robust diameter")
     end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")
+    voxel_ratio: float = Field(0.01, gt=0, lt=0.5, description="voxel size of the refinement clouds / robust diameter")
+    max_points: int = Field(12000, ge=100, description="working size of each refinement cloud")
 
 
 class VerdictConfig(_Strict):

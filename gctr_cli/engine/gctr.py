@@ -126,10 +126,11 @@ def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, ti
                      surface=Surface.build(work, normals, tree, cfg.verdict.sample_points))
 
 
-def _min_edges(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+def _edges(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shortest edge and perimeter of each triangle (i, j, k)."""
     a, b, c = points[i], points[j], points[k]
-    return np.minimum(np.minimum(np.linalg.norm(a - b, axis=1), np.linalg.norm(b - c, axis=1)),
-                      np.linalg.norm(c - a, axis=1))
+    e = np.stack([np.linalg.norm(a - b, axis=1), np.linalg.norm(b - c, axis=1), np.linalg.norm(c - a, axis=1)])
+    return e.min(axis=0), e.sum(axis=0)
 
 
 def _dense_scores(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, distance: float,
@@ -226,21 +227,33 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
                       alternatives=tuple(seen))
 
 
-def _refine(T_n: np.ndarray, agreement: Agreement, src: _Prepared, tgt: _Prepared, cfg: EngineConfig,
-            bounds_n: tuple[float, float]) -> np.ndarray:
-    """Scaled ICP polish of the coarse answer, kept only when the surface agreement does not drop
-    (ICP can drift the scale on outlier-ridden, partial clouds; the verdict's objective exposes it)."""
-    r = cfg.refine
+def _refinement_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray, cKDTree]:
+    """A finer working cloud for the refinement (precision needs more points than the search)."""
+    pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
+    return pts, estimate_normals(pts, cfg.preprocess.normal_neighbours), cKDTree(pts)
+
+
+def _refine(T_n: np.ndarray, agreement: Agreement, src_points: np.ndarray, tgt_points: np.ndarray,
+            src: _Prepared, tgt: _Prepared, cfg: EngineConfig, bounds_n: tuple[float, float],
+            rng: np.random.Generator) -> np.ndarray:
+    """Scaled ICP polish of the coarse answer on finer clouds, kept only when it agrees at least as
+    well with the data at half the inlier distance and (within 0.02) at the inlier distance: ICP can
+    drift the scale on outlier-ridden, partial clouds, and the verdict's objective exposes it."""
+    r, v = cfg.refine, cfg.verdict
+    s_pts, s_nrm, _ = _refinement_cloud(src_points, cfg, rng)
+    t_pts, t_nrm, t_tree = _refinement_cloud(tgt_points, cfg, rng)
     if r.method == "point_to_plane":
-        T_r, _ = scaled_point_to_plane_icp(src.points, tgt.points, tgt.normals, T_n, r.iterations, r.start_ratio,
-                                           r.end_ratio, bounds_n, tgt.tree, src_normals=src.normals,
-                                           max_normal_angle_deg=cfg.verdict.max_normal_angle_deg)
+        T_r, _ = scaled_point_to_plane_icp(s_pts, t_pts, t_nrm, T_n, r.iterations, r.start_ratio, r.end_ratio,
+                                           bounds_n, t_tree, src_normals=s_nrm,
+                                           max_normal_angle_deg=v.max_normal_angle_deg)
     else:
-        T_r, _ = trimmed_scaled_icp(src.points, tgt.points, T_n, r.iterations, r.start_ratio, r.end_ratio, bounds_n,
-                                    tgt.tree)
-    refined = surface_agreement(T_r, src.surface, tgt.surface, cfg.inlier_distance_ratio,
-                                cfg.verdict.max_normal_angle_deg)
-    return T_r if refined.score >= agreement.score else T_n
+        T_r, _ = trimmed_scaled_icp(s_pts, t_pts, T_n, r.iterations, r.start_ratio, r.end_ratio, bounds_n, t_tree)
+    d = cfg.inlier_distance_ratio
+    tight_before = surface_agreement(T_n, src.surface, tgt.surface, d / 2, v.max_normal_angle_deg).score
+    tight_after = surface_agreement(T_r, src.surface, tgt.surface, d / 2, v.max_normal_angle_deg).score
+    after = surface_agreement(T_r, src.surface, tgt.surface, d, v.max_normal_angle_deg).score
+    return T_r if tight_after >= tight_before and after >= agreement.score - 0.02 else T_n
 
 
 def _verdict(T_n: np.ndarray, candidates: list[_Candidate], src: _Prepared, tgt: _Prepared,
@@ -287,8 +300,10 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     except DegenerateCloudError as err:
         return _failed(str(err), seed, start, timer.timings)
 
+    overlaps = cfg.overlap_candidates if cfg.overlap == "auto" else (float(cfg.overlap),)
     root = np.random.SeedSequence(seed)
-    rng_src, rng_tgt, rng_pool, *rng_overlaps = [np.random.default_rng(s) for s in root.spawn(3 + 4)]
+    rng_src, rng_tgt, rng_pool, rng_refine, *rng_overlaps = [np.random.default_rng(s)
+                                                             for s in root.spawn(4 + len(overlaps))]
     ns, nt = normalise(src_raw), normalise(tgt_raw)
     src = _prepare(ns.points, cfg, rng_src, timer)
     tgt = _prepare(nt.points, cfg, rng_tgt, timer)
@@ -302,7 +317,6 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     ratio = ns.size / nt.size
     bounds_n = (lo * ratio, hi * ratio)
 
-    overlaps = cfg.overlap_candidates if cfg.overlap == "auto" else (float(cfg.overlap),)
     t = time.perf_counter()
     tri = cfg.triplets
     S, Q = src.salient, tgt.salient
@@ -316,8 +330,11 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
                                len(Q), tgt_tri, triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w),
                                cfg.tensor.knn, cfg.tensor.sigma)
     n2 = len(Q)
-    src_edge = _min_edges(S, H3_all.a // n2, H3_all.b // n2, H3_all.c // n2)
-    tgt_edge = _min_edges(Q, H3_all.a % n2, H3_all.b % n2, H3_all.c % n2)
+    src_edge, src_perimeter = _edges(S, H3_all.a // n2, H3_all.b // n2, H3_all.c // n2)
+    tgt_edge, tgt_perimeter = _edges(Q, H3_all.a % n2, H3_all.b % n2, H3_all.c % n2)
+    # Each triangle match implies a scale (ratio of perimeters); matches whose scale the overlap
+    # hypothesis rules out cannot be right, so they are dropped before the power iteration.
+    implied_scale = tgt_perimeter / np.maximum(src_perimeter, 1e-12)
     timer.add("tensor", t)
 
     best: _Candidate | None = None
@@ -327,14 +344,16 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         # about sqrt(r): wide-baseline triangles need edges of min_edge_ratio * sqrt(r).
         region = float(np.sqrt(overlap))
         keep = (src_edge >= tri.min_edge_ratio * region) & (tgt_edge >= tri.min_edge_ratio * region)
-        if keep.sum() < 3:
-            continue
         # The overlapping regions have normalised diameters between about sqrt(r) and 1 in each
         # cloud, which bounds the normalised scale (a margin of 1.5 for crops and outliers).
         prior = (max(bounds_n[0], region / 1.5), min(bounds_n[1], 1.5 / region))
         if prior[0] >= prior[1]:
             continue
-        cand = _outer_loop(src, tgt, subset(H3_all, keep), overlap, cfg, rng_overlaps[k % 4], prior, timer)
+        if cfg.tensor.scale_filter:
+            keep &= (implied_scale >= prior[0] / 1.2) & (implied_scale <= prior[1] * 1.2)
+        if keep.sum() < 3:
+            continue
+        cand = _outer_loop(src, tgt, subset(H3_all, keep), overlap, cfg, rng_overlaps[k], prior, timer)
         if cand is None:
             continue
         log.debug("overlap %.2f: agreement source %.3f target %.3f, %d inliers", overlap, cand.agreement.source,
@@ -349,7 +368,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     T_n = best.transform
     if cfg.refine.enabled:
         t = time.perf_counter()
-        T_n = _refine(T_n, best.agreement, src, tgt, cfg, bounds_n)
+        T_n = _refine(T_n, best.agreement, ns.points, nt.points, src, tgt, cfg, bounds_n, rng_refine)
         timer.add("refine", t)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
 
