@@ -119,8 +119,8 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
 
     Coordinates are written at full precision: float64 in PLY and PCD (binary little endian when
     ``binary``, else ASCII), ``%.17g`` in text files (``.pts`` starts with a point-count line), and
-    in LAS/LAZ 1.4 with a scale that quantises each axis to at most span / 4e9 (0.25 µm on a 1 km
-    tile). Attributes are kept where the format allows: PLY and PCD keep every numeric attribute,
+    in LAS/LAZ 1.4 with a power-of-ten scale that quantises each axis to at most span / 4e8 (2.5 µm on
+    a 1 km tile). Attributes are kept where the format allows: PLY and PCD keep every numeric attribute,
     LAS fills its standard dimensions (intensity, classification, colours ...) and stores the others
     as extra bytes, text files get one column per attribute after ``x y z``. Missing parent folders
     are created; the write is atomic (temporary file in the same folder, then ``os.replace``).

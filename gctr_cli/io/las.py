@@ -15,7 +15,11 @@ from __future__ import annotations
 import io as _stdio
 import logging
 import math
+import os
+import signal
 import struct
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -81,11 +85,90 @@ def _check_header(path: Path, head: bytes, size: int, compressed_ext: bool) -> t
 
 
 def read_las(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
-    import laspy
-
     head = fh.read(375)
     count, compressed = _check_header(path, head, size, path.suffix.lower() == ".laz")
-    fh.seek(0)
+    if not compressed:
+        fh.seek(0)
+        return _read_points(path, fh, count, compressed, attributes)
+    with tempfile.TemporaryDirectory(prefix="gctr-laz-") as tmp:
+        plain = _decompress_isolated(path, Path(tmp), count * int.from_bytes(head[105:107], "little"))
+        with open(plain, "rb") as fh2:
+            plain_size = os.fstat(fh2.fileno()).st_size
+            count2, _ = _check_header(path, fh2.read(375), plain_size, False)
+            if count2 != count:
+                raise PointCloudError(f"{path}: corrupt LAZ file: the header declares {count} points but the "
+                                      f"data decompresses to {count2}")
+            fh2.seek(0)
+            return _read_points(path, fh2, count, True, attributes)
+
+
+def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
+    """Decompress a LAZ file to a plain LAS file in a forked child process.
+
+    lazrs *aborts the process* on some corrupt files (e.g. a garbage chunk count asks for 60 GB, and
+    Rust aborts when an allocation fails), so a corrupt LAZ must not be decoded in the process that
+    reports the error. The child's address space is capped at its current size plus a few times the
+    declared point data; a crash, a refused allocation or a hang becomes a :class:`PointCloudError`.
+    Where ``fork`` is unavailable the file is decoded in-process.
+    """
+    out = tmp / "points.las"
+    if not hasattr(os, "fork"):  # pragma: no cover - Windows
+        _decompress(path, out)
+        return out
+    limit = _current_vm_bytes() + 4 * raw_bytes + (768 << 20)
+    pid = os.fork()
+    if pid == 0:  # child: never returns
+        code = 3
+        try:
+            try:
+                import resource
+
+                resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+            except (ImportError, ValueError, OSError):
+                pass
+            _decompress(path, out)
+            code = 0
+        except BaseException:  # noqa: BLE001
+            code = 3
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + 60 + raw_bytes / 20e6
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            raise PointCloudError(f"{path}: corrupt LAZ file: decompressing the point data did not finish")
+        time.sleep(0.005)
+    if not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0 and out.exists()):
+        raise PointCloudError(f"{path}: corrupt or unsupported LAZ file: the point data cannot be decompressed")
+    return out
+
+
+def _decompress(path: Path, out: Path) -> None:
+    import laspy
+
+    las = laspy.read(str(path), laz_backend=laspy.LazBackend.Lazrs)
+    las.write(str(out), do_compress=False)
+
+
+def _current_vm_bytes() -> int:
+    try:
+        with open("/proc/self/status", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"VmSize:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 8 << 30
+
+
+def _read_points(path: Path, fh, count: int, compressed: bool, attributes: bool) -> PointCloud:
+    """The points of an uncompressed LAS file object (its header already checked), in chunks."""
+    import laspy
+
     try:
         with laspy.open(fh, closefd=False) as reader:
             hdr = reader.header
@@ -128,9 +211,9 @@ _RGB = ("red", "green", "blue")
 
 
 def _scale_offset(values: np.ndarray) -> tuple[float, float]:
-    """A decimal scale that spreads the axis over at most 2e9 integer steps, and an offset near its
-    minimum: the quantisation error is at most half a step (span / 4e9, never above 0.5 mm for
-    spans below 2,000 km)."""
+    """The smallest power-of-ten scale that spreads the axis over at most 2e9 integer steps (int32),
+    and an offset near its minimum: the quantisation error is at most half a step, i.e. at most
+    span / 4e8 (2.5 µm on a 1 km tile)."""
     lo, hi = float(values.min()), float(values.max())
     span = max(hi - lo, abs(lo) * 1e-12, 1e-9)
     scale = 10.0 ** math.ceil(math.log10(span / 2e9))
