@@ -139,7 +139,10 @@ def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[i
     raw = b""
     if n:
         comp = fh.read(csize)
-        raw = lzf.decompress(comp, usize + 1) if csize else None  # +1: detect output longer than declared
+        try:
+            raw = lzf.decompress(comp, usize + 1) if csize else None  # +1: detect output longer than declared
+        except ValueError:  # python-lzf: invalid LZF data
+            raw = None
         if raw is None or len(raw) != usize:
             got = "more" if raw is not None and len(raw) > usize else ("fewer" if raw is not None else "invalid")
             detail = "the LZF data is invalid" if got == "invalid" else f"the LZF data decompresses to {got} bytes than declared"
