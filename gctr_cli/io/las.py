@@ -120,6 +120,15 @@ def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
     if pid == 0:  # child: never returns
         code = 3
         try:
+            # a crash report of the child (Rust's allocation failure, faulthandler) is not for the user
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, 2)
+            try:
+                import faulthandler
+
+                faulthandler.disable()
+            except Exception:  # noqa: BLE001
+                pass
             try:
                 import resource
 
@@ -150,6 +159,8 @@ def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
 def _decompress(path: Path, out: Path) -> None:
     import laspy
 
+    # single-threaded lazrs: thread pools and their malloc arenas would make the address-space cap
+    # depend on the number of cores
     las = laspy.read(str(path), laz_backend=laspy.LazBackend.Lazrs)
     las.write(str(out), do_compress=False)
 
