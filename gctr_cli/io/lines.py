@@ -40,6 +40,7 @@ class LineReader:
         self.fh, self.path = fh, path
         self.lineno = lines_before  # number of the last line handed out
         self._buf = b""
+        self._pos = 0  # start of the unread part of _buf
         self._eof = False
 
     def _fill(self) -> bool:
@@ -49,41 +50,45 @@ class LineReader:
         if not chunk:
             self._eof = True
             return False
-        self._buf += chunk
+        self._buf = self._buf[self._pos :] + chunk
+        self._pos = 0
         return True
+
+    def _too_long(self) -> PointCloudError:
+        return PointCloudError(
+            f"{self.path}: line {self.lineno + 1} is longer than {MAX_LINE // 1024} KiB (the data is not text lines)"
+        )
 
     def take(self, max_lines: int) -> tuple[bytes, int]:
         """Up to ``max_lines`` whole lines (each ending in ``\\n``, except maybe the file's last) and
         their number; ``(b"", 0)`` at the end of the file."""
         while True:
-            nl = self._buf.find(b"\n")
+            nl = self._buf.find(b"\n", self._pos)
             if nl >= 0 or self._eof:
                 break
-            if len(self._buf) > MAX_LINE:
-                raise PointCloudError(
-                    f"{self.path}: line {self.lineno + 1} is longer than {MAX_LINE // 1024} KiB "
-                    "(the data is not text lines)"
-                )
+            if len(self._buf) - self._pos > MAX_LINE:
+                raise self._too_long()
             self._fill()
-        if not self._buf:
-            return b"", 0
+        start = self._pos
         if nl < 0:  # last line of the file, without a line end
-            if len(self._buf) > MAX_LINE:
-                raise PointCloudError(
-                    f"{self.path}: line {self.lineno + 1} is longer than {MAX_LINE // 1024} KiB "
-                    "(the data is not text lines)"
-                )
-            out, self._buf = self._buf, b""
+            if len(self._buf) == start:
+                return b"", 0
+            if len(self._buf) - start > MAX_LINE:
+                raise self._too_long()
+            self._pos = len(self._buf)
             self.lineno += 1
-            return out, 1
-        ends = np.flatnonzero(np.frombuffer(self._buf, dtype=np.uint8) == 10)
-        k = min(max_lines, len(ends))
-        cut = int(ends[k - 1]) + 1
-        out, self._buf = self._buf[:cut], self._buf[cut:]
+            return self._buf[start:], 1
+        if nl - start > MAX_LINE:
+            raise self._too_long()
+        if max_lines == 1:
+            k, cut = 1, nl + 1
+        else:
+            ends = np.flatnonzero(np.frombuffer(self._buf, dtype=np.uint8, offset=start) == 10)
+            k = min(max_lines, len(ends))
+            cut = start + int(ends[k - 1]) + 1
+        self._pos = cut
         self.lineno += k
-        if not self._buf:
-            self._fill()
-        return out, k
+        return self._buf[start:cut], k
 
     def line(self) -> bytes | None:
         """The next line without its line end, or None at the end of the file."""

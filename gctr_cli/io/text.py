@@ -200,7 +200,8 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 f"{path}: line {lines_before + i + 1} has {len(toks)} column(s), expected at least 3 (x y z)"
             )
         add(toks[:3])
-    first_non_numeric(len(lines)) if any("_" in t for t in flat) else None
+    if any("_" in t for t in flat):  # float() accepts 1_000; no point cloud writer does
+        first_non_numeric(len(lines))
     try:
         values = np.fromiter(map(float, flat), dtype=np.float64, count=len(flat))
     except ValueError:
