@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.errors import PointCloudError
+from gctr_cli.io.errors import PointCloudError, clean
 
 __all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "transform_cloud", "validate_cloud"]
 
@@ -74,7 +74,7 @@ def validate_cloud(cloud: PointCloud, path: Path, min_points: int, degenerate_ok
     elif _collinear(pts):
         raise PointCloudError(f"{path}: degenerate cloud: points are collinear ({n} points{dropped} on one line)")
     if n_bad:
-        logger.warning("%s: dropped %d of %d points with non-finite (NaN/inf) coordinates", path, n_bad, n_total)
+        logger.warning("%s: dropped %d of %d points with non-finite (NaN/inf) coordinates", clean(path), n_bad, n_total)
     return cloud
 
 

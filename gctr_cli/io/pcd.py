@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from gctr_cli.io.cloud import PointCloud
-from gctr_cli.io.errors import PointCloudError, quote
+from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.lines import LineReader, parse_float, read_rows
 from gctr_cli.io.ply import format_columns
 
@@ -244,7 +244,7 @@ def _parse_header(fh, path: Path) -> _Header:
         points = width * (height if height is not None else 1)
     elif width is not None and width * (height if height is not None else 1) != points:
         logger.warning("%s: PCD header WIDTH*HEIGHT = %d does not match POINTS = %d; using POINTS",
-                       path, width * (height or 1), points)
+                       clean(path), width * (height or 1), points)
     data = " ".join(vals["DATA"]).lower()
     if data not in ("ascii", "binary", "binary_compressed"):
         raise bad(f"unknown DATA type {quote(data)} (expected ascii, binary or binary_compressed)")
