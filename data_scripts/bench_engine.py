@@ -835,7 +835,7 @@ def code_state() -> str:
     return f"git `{head}` plus uncommitted changes in {names}"
 
 
-CODE_FILES = ("gctr_cli/engine/*.py", "gctr_cli/config.py", "gctr_cli/metrics.py", "gctr_cli/io.py")
+CODE_FILES = ("gctr_cli/engine/*.py", "gctr_cli/config.py", "gctr_cli/metrics.py", "gctr_cli/io/*.py")
 
 
 def code_fingerprint(config_path: Path | None = None) -> str:

@@ -130,6 +130,8 @@ def main(verbose: int) -> None:
     \b
     Examples:
       gctr register scan_a.ply scan_b.pcd -o a_to_b.txt
+      gctr register scan_a.laz map.e57 -o a_to_map.txt --aligned scan_a_aligned.laz
+      gctr apply a_to_b.txt scan_a.ply -o scan_a_on_b.ply
       gctr manifest lidar/ photogrammetry/ --gt-dir gt/ -o pairs.csv
       gctr batch pairs.csv -c configs/default.yaml -o results/
       gctr batch pairs.csv -o results/ --executor dask --scheduler tcp://HOST:8786
@@ -161,8 +163,11 @@ def main(verbose: int) -> None:
 @click.option("--gt", type=click.Path(dir_okay=False, path_type=Path), help="Ground-truth matrix: also print the errors.")
 @click.option("--seed", type=click.IntRange(min=0), help="Engine seed (default: the config seed). To reproduce a "
               "batch row, pass its seed column.")
+@click.option("--aligned", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write SOURCE moved onto TARGET to this file (.ply, .pcd, .las, .laz, .xyz, .pts, .txt; "
+                   "attributes kept where the format allows).")
 def register(source: Path, target: Path, config_path: str | None, output: Path | None, gt: Path | None,
-             seed: int | None) -> None:
+             seed: int | None, aligned: Path | None) -> None:
     """Register SOURCE onto TARGET and print the similarity transform.
 
     Prints the 4x4 matrix (full precision, same format as the matrix files), the scale, fitness
@@ -177,6 +182,8 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
       2  usage, config or file error (unreadable cloud, bad ground truth)
     """
     _single_threaded_native_libs()
+    if aligned is not None:
+        _check_output_cloud(aligned)
     config = _load_config(config_path)
     from gctr_cli import batch
     from gctr_cli.io import MatrixError, format_matrix, write_matrix
@@ -209,8 +216,9 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         echo(f"success: {'true' if outcome.success else 'false'}")
 
     if not outcome.ok:
-        if output is not None:
-            click.echo(f"gctr: no matrix written to {output} (registration failed)", err=True)
+        for path, what in ((output, "matrix"), (aligned, "aligned cloud")):
+            if path is not None:
+                click.echo(f"gctr: no {what} written to {path} (registration failed)", err=True)
         sys.exit(EXIT_FAILED)
     if output is not None:
         try:
@@ -218,6 +226,64 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         except MatrixError as exc:
             _die(str(exc))
         logger.info("wrote %s", output)
+    if aligned is not None:
+        from gctr_cli.io import PointCloudError, write_aligned
+
+        try:
+            write_aligned(source, outcome.transform, aligned)
+        except (PointCloudError, MatrixError) as exc:
+            _die(str(exc))
+        echo(f"aligned: {aligned}")
+
+
+def _check_output_cloud(path: Path) -> None:
+    """Exit 2 before any work when ``path`` has no extension gctr can write a cloud to."""
+    from gctr_cli.io.registry import WRITE_EXTENSIONS, format_of
+
+    fmt = format_of(path)
+    if fmt is None or fmt.write is None:
+        _die(f"{path}: cannot write a point cloud with extension '{path.suffix}' "
+             f"(supported: {', '.join(WRITE_EXTENSIONS)})")
+
+
+# ----------------------------------------------------------------------------------------------------
+# apply
+# ----------------------------------------------------------------------------------------------------
+
+
+@main.command()
+@click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("input", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts or .txt.")
+def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the argument's name in --help
+    """Move the cloud INPUT by the 4x4 MATRIX and write it to OUTPUT.
+
+    MATRIX is a source->target matrix file as written by register -o or batch (matrices/<pair_id>.txt).
+    INPUT may be any format gctr reads (.ply .pcd .xyz .pts .txt .las .laz .e57); OUTPUT's extension
+    chooses its format. Coordinates stay float64 (LAS/LAZ: a scale fine enough for the extent);
+    attributes (colours, intensity, classification ...) are kept where OUTPUT's format allows, and
+    normals are rotated.
+
+    \b
+    Example:
+      gctr register scan.laz map.e57 -o scan_to_map.txt
+      gctr apply scan_to_map.txt scan.laz -o scan_in_map.laz
+
+    \b
+    Exit codes:
+      0  written
+      2  unreadable matrix or cloud, unsupported extension, or OUTPUT cannot be written
+    """
+    _check_output_cloud(output)
+    from gctr_cli.io import MatrixError, PointCloudError, read_matrix, write_aligned
+
+    try:
+        T = read_matrix(matrix)
+        moved = write_aligned(input, T, output)
+    except (PointCloudError, MatrixError) as exc:
+        _die(str(exc))
+    click.echo(f"wrote {output} ({len(moved)} points)")
 
 
 # ----------------------------------------------------------------------------------------------------

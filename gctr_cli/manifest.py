@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,11 +63,17 @@ def _listing(items: Sequence[str]) -> str:
     return shown + (f", ... ({len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else "")
 
 
+def _absolute(p: Path) -> Path:
+    """``p`` made absolute and normalised *without following symbolic links*: messages name the path
+    the user wrote, a link keeps its own name (and extension), and a link loop cannot raise here."""
+    return Path(os.path.normpath(os.path.abspath(p)))
+
+
 def _resolve(cell: str, base: Path) -> Path:
     p = Path(cell).expanduser()
     if not p.is_absolute():
         p = base / p
-    return p.resolve()
+    return _absolute(p)
 
 
 def read_manifest(path: str | Path) -> list[PairSpec]:
@@ -92,7 +99,7 @@ def read_manifest(path: str | Path) -> list[PairSpec]:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise ManifestError(f"{path}: manifest is not UTF-8 text (bad byte at offset {exc.start})") from exc
-    base = path.resolve().parent
+    base = _absolute(path).parent
 
     reader = csv.reader(io.StringIO(text, newline=""))
     header: list[str] | None = None
@@ -163,7 +170,7 @@ def _format_path(p: Path, base: Path) -> str:
     if not p.is_absolute():
         return p.as_posix()
     try:
-        return p.resolve().relative_to(base).as_posix()
+        return _absolute(p).relative_to(base).as_posix()
     except ValueError:
         return str(p)
 
@@ -189,7 +196,7 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
         seen.add(p.pair_id)
 
     base = Path(relative_to) if relative_to is not None else path.parent
-    base = base.resolve()
+    base = _absolute(base)
     with_gt = any(p.gt is not None for p in pairs)
     buf = io.StringIO(newline="")
     writer = csv.writer(buf, lineterminator="\n")
@@ -209,14 +216,16 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
 def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:
     found: dict[str, list[Path]] = {}
     for f in sorted(folder.iterdir()):
-        if f.name.startswith(".") or not f.is_file() or f.suffix.lower() not in SUPPORTED_EXTENSIONS:
+        # a link counts whatever it points to (a DVC cache file without extension, or something
+        # unreadable: the pair's row then says what is wrong with it)
+        if f.name.startswith(".") or not (f.is_symlink() or f.is_file()) or f.suffix.lower() not in SUPPORTED_EXTENSIONS:
             continue
         found.setdefault(f.stem, []).append(f)
     ambiguous = {s: fs for s, fs in found.items() if len(fs) > 1}
     if ambiguous:
         desc = _listing([f"{s} ({', '.join(f.name for f in fs)})" for s, fs in sorted(ambiguous.items())])
         raise ManifestError(f"{folder}: {role} folder has several point cloud files with the same stem: {desc}")
-    return {s: fs[0].resolve() for s, fs in found.items()}
+    return {s: _absolute(fs[0]) for s, fs in found.items()}
 
 
 def build_manifest(
@@ -234,7 +243,7 @@ def build_manifest(
     for d, role in ((sdir, "source"), (tdir, "target")) + (((Path(gt_dir), "ground-truth"),) if gt_dir else ()):
         if not d.is_dir():
             raise ManifestError(f"{d}: {role} folder does not exist" if not d.exists() else f"{d}: {role} path is not a folder")
-    if sdir.resolve() == tdir.resolve():
+    if os.path.realpath(sdir) == os.path.realpath(tdir):
         raise ManifestError(f"{sdir}: source and target folders are the same; every file would pair with itself")
 
     src = _cloud_files_by_stem(sdir, "source")
@@ -263,7 +272,7 @@ def build_manifest(
         if gt_dir is not None:
             cand = Path(gt_dir) / f"{stem}.txt"
             if cand.is_file():
-                gt = cand.resolve()
+                gt = _absolute(cand)
             else:
                 missing_gt.append(stem)
         pairs.append(PairSpec(stem, src[stem], tgt[stem], gt))

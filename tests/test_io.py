@@ -530,8 +530,8 @@ def test_unsupported_extension(tmp_path, cloud):
         load_point_cloud(path)
     assert_error(ei, path, "unsupported extension '.foo'", "supported: .ply, .pcd")
     with pytest.raises(PointCloudError) as ei:
-        save_point_cloud(tmp_path / "out.las", cloud)
-    assert "unsupported extension '.las'" in str(ei.value)
+        save_point_cloud(tmp_path / "out.e57", cloud)
+    assert "unsupported extension '.e57' for writing" in str(ei.value)
 
 
 def test_extension_case_insensitive(tmp_path, cloud):

@@ -29,6 +29,7 @@ import pytest
 
 from conftest import PYTHON, REPO, apply, read_csv, rotation, row_matrix, similarity, write_manifest_rows
 from gctr_cli import io as gio
+from gctr_cli.io import text as _text_module  # noqa: F401 - gio.text for monkeypatching
 from gctr_cli.batch import ERRORS_COLUMNS, LOCK_NAME, MATRIX_COLUMNS, TRANSFORMS_COLUMNS, derive_seed
 from gctr_cli.config import Config
 from gctr_cli.io import PointCloudError, load_point_cloud, read_matrix, save_point_cloud, write_matrix
@@ -197,8 +198,8 @@ def build_mixed(root: Path) -> Mixed:
     (bad / "broken_header.pcd").write_text(text)
     add_bad("pcd_broken_header", bad / "broken_header.pcd", ("broken PCD header", "SIZE has 2 entries"))
     save_point_cloud(bad / "cloud.xyz", src1)
-    shutil.copy(bad / "cloud.xyz", bad / "cloud.las")
-    add_bad("unsupported", bad / "cloud.las", ("unsupported extension '.las'",))
+    shutil.copy(bad / "cloud.xyz", bad / "cloud.obj")
+    add_bad("unsupported", bad / "cloud.obj", ("unsupported extension '.obj'",))
     save_point_cloud(bad / "identical.ply", np.tile([0.01, -0.02, 0.03], (500, 1)))
     add_bad("identical", bad / "identical.ply", ("degenerate cloud", "all 500 points are identical"))
     t = rng.uniform(-0.1, 0.1, size=(500, 1))
@@ -587,8 +588,8 @@ def test_text_clouds_are_read_with_memory_proportional_to_the_points(tmp_path):
 def test_block_reader_matches_the_line_format_across_block_boundaries(tmp_path, monkeypatch, first, block):
     """Header lines, a count line, comments, CRLF, commas, extra columns and blank lines split over
     blocks of any size parse the same, and errors keep the file's line numbers."""
-    monkeypatch.setattr(gio, "_TEXT_FIRST_BLOCK", first)
-    monkeypatch.setattr(gio, "_TEXT_BLOCK", block)
+    monkeypatch.setattr(gio.text, "_TEXT_FIRST_BLOCK", first)
+    monkeypatch.setattr(gio.text, "_TEXT_BLOCK", block)
     rng = np.random.default_rng(7)
     pts = rng.normal(size=(40, 3))
     lines = [f"{x!r} {y!r} {z!r}" for x, y, z in pts.tolist()]

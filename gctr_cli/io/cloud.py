@@ -1,0 +1,110 @@
+"""The in-memory cloud every reader returns and every writer takes, its validation and its transform."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gctr_cli.io.errors import PointCloudError, clean
+
+__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "transform_cloud", "validate_cloud"]
+
+logger = logging.getLogger("gctr_cli.io")
+
+#: relative singular-value threshold below which a cloud counts as collinear
+COLLINEAR_RTOL = 1e-9
+#: attribute triples that are normal vectors: rotated (not scaled or moved) by a transform
+NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """Points and their per-point attributes.
+
+    ``points`` is an ``(N, 3)`` float64 array in the file's coordinates (scaled/offset LAS and E57
+    coordinates already applied, at full float64 precision). ``attributes`` maps a name (``intensity``,
+    ``red``, ``green``, ``blue``, ``classification``, ``nx`` ...) to a 1-D array of length N in the
+    file's own type. ``source_format`` names the reader (``"ply"``, ``"las"`` ...) and ``meta`` holds
+    format hints a writer of the same family may reuse (e.g. the LAS point format and scales).
+    """
+
+    points: np.ndarray
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    source_format: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def subset(self, mask: np.ndarray) -> "PointCloud":
+        return PointCloud(self.points[mask], {k: v[mask] for k, v in self.attributes.items()},
+                          self.source_format, self.meta)
+
+
+def validate_cloud(cloud: PointCloud, path: Path, min_points: int, degenerate_ok: bool = False) -> PointCloud:
+    """Drop non-finite points (with their attributes), then check the count and degeneracy.
+
+    The "dropped N non-finite points" warning is logged only for a cloud that is accepted; when the
+    cloud is rejected the error itself says how many points were dropped.
+    """
+    pts = cloud.points
+    n_total = len(pts)
+    finite = np.isfinite(pts).all(axis=1)
+    n_bad = int(n_total - finite.sum())
+    if n_bad:
+        cloud = cloud.subset(finite)
+        pts = cloud.points
+    n = len(pts)
+    dropped = f" after dropping {n_bad} non-finite" if n_bad else ""
+    if n == 0:
+        if n_total:
+            raise PointCloudError(f"{path}: contains no finite points (all {n_total} points are non-finite)")
+        raise PointCloudError(f"{path}: contains no points (at least {min_points} required)")
+    if n < min_points:
+        raise PointCloudError(
+            f"{path}: too few points: only {n} finite points{dropped} (at least {min_points} required)"
+        )
+    if degenerate_ok:
+        pass
+    elif (pts == pts[0]).all():
+        raise PointCloudError(f"{path}: degenerate cloud: all {n} points{dropped} are identical")
+    elif _collinear(pts):
+        raise PointCloudError(f"{path}: degenerate cloud: points are collinear ({n} points{dropped} on one line)")
+    if n_bad:
+        logger.warning("%s: dropped %d of %d points with non-finite (NaN/inf) coordinates", clean(path), n_bad, n_total)
+    return cloud
+
+
+def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
+    """``cloud`` moved by the 4x4 similarity ``T`` (``p' = s·R·p + t``), in float64.
+
+    Points are moved about their mean, so UTM-size coordinates keep their precision; normal
+    attributes (``nx ny nz`` / ``normal_x ...``) are rotated and renormalised; every other attribute
+    is copied unchanged.
+    """
+    M = np.asarray(T, dtype=np.float64)
+    A, t = M[:3, :3], M[:3, 3]
+    pts = cloud.points
+    c = pts.mean(axis=0) if len(pts) else np.zeros(3)
+    moved = (pts - c) @ A.T + (A @ c + t)
+    attrs = dict(cloud.attributes)
+    det = float(np.linalg.det(A))
+    s = np.cbrt(det) if det != 0 else 1.0
+    for names in NORMAL_NAMES:
+        if all(n in attrs for n in names):
+            nrm = np.stack([attrs[n].astype(np.float64) for n in names], axis=1) @ (A / s).T
+            length = np.linalg.norm(nrm, axis=1, keepdims=True)
+            nrm = np.divide(nrm, length, out=nrm.copy(), where=length > 0)
+            for j, n in enumerate(names):
+                kind = attrs[n].dtype
+                attrs[n] = nrm[:, j].astype(kind) if kind.kind == "f" else nrm[:, j]
+    return PointCloud(moved, attrs, cloud.source_format, cloud.meta)
+
+
+def _collinear(pts: np.ndarray) -> bool:
+    centred = pts - pts.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    return bool(sv[1] < COLLINEAR_RTOL * sv[0])

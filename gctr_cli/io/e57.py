@@ -1,0 +1,91 @@
+"""E57 (ASTM E2807, terrestrial scanner projects) via pye57: reader.
+
+Every scan of the file is read with its stored pose (rotation quaternion and translation) applied,
+and the scans are merged into one cloud in the file's common frame; spherical scans are converted
+to cartesian. Points flagged invalid are dropped. Intensity and colours are kept as attributes
+(``intensity``, ``red``/``green``/``blue``) when every scan has them.
+
+The point counts the file declares are checked against its size (at least one byte per point)
+before any buffer is allocated.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from gctr_cli.io.cloud import PointCloud
+from gctr_cli.io.errors import PointCloudError
+
+__all__ = ["read_e57"]
+
+logger = logging.getLogger("gctr_cli.io")
+
+_COLOR = {"colorRed": "red", "colorGreen": "green", "colorBlue": "blue"}
+
+
+def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
+    import pye57
+
+    if fh.read(8) != b"ASTM-E57":
+        raise PointCloudError(f"{path}: not an E57 file (missing 'ASTM-E57' signature)")
+
+    def corrupt(exc: BaseException, what: str) -> PointCloudError:
+        logger.debug("%s: pye57 failed", path, exc_info=exc)
+        return PointCloudError(f"{path}: corrupt or unsupported E57 file: {what}")
+
+    try:
+        e57 = pye57.E57(str(path))
+    except Exception as exc:  # noqa: BLE001 - libE57 text is not for users
+        raise corrupt(exc, "its structure (XML section or checksums) cannot be read") from None
+    try:
+        n_scans = e57.scan_count
+        if n_scans == 0:
+            raise PointCloudError(f"{path}: contains no points (the E57 file has no scans)")
+        headers = []
+        total = 0
+        for i in range(n_scans):
+            try:
+                h = e57.get_header(i)
+                count = int(h.point_count)
+                fields = set(h.point_fields)
+            except Exception as exc:  # noqa: BLE001
+                raise corrupt(exc, f"the header of scan {i} cannot be read") from None
+            total += count
+            headers.append(fields)
+        if total > size:
+            raise PointCloudError(
+                f"{path}: corrupt E57 file: its scans declare {total} points but the file has only {size} bytes"
+            )
+        want_int = attributes and all("intensity" in f for f in headers)
+        want_rgb = attributes and all(all(c in f for c in _COLOR) for f in headers)
+        parts, attrs = [], {"intensity": []} if want_int else {}
+        if want_rgb:
+            attrs.update({v: [] for v in _COLOR.values()})
+        for i in range(n_scans):
+            try:
+                data = e57.read_scan(i, intensity=want_int, colors=want_rgb, transform=True,
+                                     ignore_missing_fields=True)
+            except MemoryError:
+                raise PointCloudError(f"{path}: too large to load into memory ({total} points)") from None
+            except Exception as exc:  # noqa: BLE001
+                raise corrupt(exc, f"the points of scan {i} cannot be decoded") from None
+            xyz = np.stack([np.asarray(data[k], dtype=np.float64) for k in ("cartesianX", "cartesianY", "cartesianZ")],
+                           axis=1)
+            parts.append(xyz)
+            if want_int:
+                attrs["intensity"].append(np.asarray(data["intensity"]))
+            for k, v in _COLOR.items():
+                if want_rgb:
+                    attrs[v].append(np.asarray(data[k]))
+    finally:
+        try:
+            e57.close()
+        except Exception:  # noqa: BLE001
+            pass
+    pts = np.concatenate(parts) if parts else np.empty((0, 3))
+    out = {k: np.concatenate(v) for k, v in attrs.items() if v}
+    return PointCloud(pts, {k: v for k, v in out.items() if len(v) == len(pts)}, "e57",
+                      {"e57_scans": n_scans})

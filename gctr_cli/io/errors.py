@@ -1,0 +1,46 @@
+"""The errors of the I/O layer and the rules every message follows.
+
+A message names the path the user wrote, says what is wrong in words (never a Python exception name
+or text), contains no control characters (a header's NUL bytes or terminal escapes never reach a CSV
+cell or the terminal) and is capped in length (a 60,000-character property name gives a short quote).
+"""
+
+from __future__ import annotations
+
+import re
+
+__all__ = ["MAX_MESSAGE", "MatrixError", "PointCloudError", "clean", "quote"]
+
+#: longest message an error carries (characters); the rest is replaced by "..."
+MAX_MESSAGE = 600
+#: longest quoted token (a property name, a bad value) inside a message
+MAX_TOKEN = 40
+
+# C0 and C1 control characters, DEL, and the Unicode line/paragraph separators and bidi controls
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029\u200e\u200f\u202a-\u202e\u2066-\u2069]")
+
+
+def clean(text: object, limit: int = MAX_MESSAGE) -> str:
+    """``text`` with every control character replaced by ``?`` and cut to ``limit`` characters."""
+    s = _CONTROL.sub("?", str(text))
+    return s if len(s) <= limit else s[: max(limit - 3, 0)] + "..."
+
+
+def quote(token: object, limit: int = MAX_TOKEN) -> str:
+    """A token from a file (bytes or text), cleaned, capped and in single quotes, for a message."""
+    if isinstance(token, (bytes, bytearray)):
+        token = bytes(token[: limit * 4]).decode("latin-1")
+    return "'" + clean(token, limit) + "'"
+
+
+class _CleanError(ValueError):
+    def __init__(self, message: object = "") -> None:
+        super().__init__(clean(message))
+
+
+class PointCloudError(_CleanError):
+    """A point cloud file is missing, unreadable, malformed or degenerate (the message says which)."""
+
+
+class MatrixError(_CleanError):
+    """A matrix file is missing, malformed, or the matrix is not a valid 4x4 transform."""

@@ -1,0 +1,274 @@
+"""LAS and LAZ (laspy, with the lazrs backend for LAZ): reader and writer.
+
+Coordinates are ``X * scale + offset`` computed in float64, so UTM-size offsets keep full precision.
+Every point dimension other than X Y Z (intensity, classification, return numbers, colours, GPS time,
+extra bytes ...) is kept as an attribute.
+
+Before laspy sees a file, its header is checked here against the file size: the point count times
+the record length must fit in an uncompressed LAS file (and in at most :data:`LAZ_MAX_RATIO` times
+a LAZ file's compressed point data), so a corrupt count can never allocate more memory than a small
+multiple of the file size. Points are read in chunks.
+"""
+
+from __future__ import annotations
+
+import io as _stdio
+import logging
+import math
+import os
+import signal
+import struct
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gctr_cli.io.cloud import PointCloud
+from gctr_cli.io.errors import PointCloudError
+
+__all__ = ["read_las", "las_bytes"]
+
+logger = logging.getLogger("gctr_cli.io")
+
+#: a LAZ file's point data decompresses to at most this many times its size (LASzip reaches 5-15x
+#: on real data and about 50x on constant points)
+LAZ_MAX_RATIO = 200
+CHUNK_POINTS = 1 << 20
+#: smallest record length of each LAS point format
+_MIN_RECORD = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
+
+
+def _check_header(path: Path, head: bytes, size: int, compressed_ext: bool) -> tuple[int, bool]:
+    """Validate the fixed LAS header against the file size; return (point count, compressed)."""
+    if len(head) < 227 or head[:4] != b"LASF":
+        raise PointCloudError(f"{path}: not a LAS/LAZ file (missing 'LASF' signature)")
+    major, minor = head[24], head[25]
+    if major != 1 or minor > 4:
+        raise PointCloudError(f"{path}: unsupported LAS version {major}.{minor} (1.0 to 1.4 are read)")
+    header_size, offset_to_points = struct.unpack_from("<HI", head, 94)
+    fmt_byte, record_len, legacy_count = struct.unpack_from("<BHI", head, 104)
+    compressed = bool(fmt_byte & 0x80)
+    fmt = fmt_byte & 0x3F
+    if header_size < 227 or offset_to_points < header_size or offset_to_points > size:
+        raise PointCloudError(
+            f"{path}: corrupt LAS header: the point data would start at byte {offset_to_points} "
+            f"(header size {header_size}, file size {size})"
+        )
+    if fmt not in _MIN_RECORD or record_len < _MIN_RECORD[fmt]:
+        raise PointCloudError(
+            f"{path}: corrupt LAS header: point format {fmt} with records of {record_len} bytes"
+        )
+    count = legacy_count
+    if minor >= 4 and len(head) >= 375:
+        (count64,) = struct.unpack_from("<Q", head, 247)
+        count = count64 or legacy_count
+    scales = struct.unpack_from("<3d", head, 131)
+    offsets = struct.unpack_from("<3d", head, 155)
+    if not all(math.isfinite(s) and s != 0 for s in scales) or not all(math.isfinite(o) for o in offsets):
+        raise PointCloudError(f"{path}: corrupt LAS header: scale factors must be finite and non-zero, "
+                              "offsets finite")
+    data = size - offset_to_points
+    need = count * record_len
+    if compressed or compressed_ext:
+        if need > LAZ_MAX_RATIO * data + 1_000_000:
+            raise PointCloudError(
+                f"{path}: corrupt LAZ header: it declares {count} points ({need} bytes uncompressed) but "
+                f"holds only {data} bytes of compressed point data"
+            )
+    elif need > data:
+        raise PointCloudError(
+            f"{path}: truncated: the header declares {count} points of {record_len} bytes but only "
+            f"{data} bytes of point data follow the header (expected {need})"
+        )
+    return count, compressed
+
+
+def read_las(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
+    head = fh.read(375)
+    count, compressed = _check_header(path, head, size, path.suffix.lower() == ".laz")
+    if not compressed:
+        fh.seek(0)
+        return _read_points(path, fh, count, compressed, attributes)
+    with tempfile.TemporaryDirectory(prefix="gctr-laz-") as tmp:
+        plain = _decompress_isolated(path, Path(tmp), count * int.from_bytes(head[105:107], "little"))
+        with open(plain, "rb") as fh2:
+            plain_size = os.fstat(fh2.fileno()).st_size
+            count2, _ = _check_header(path, fh2.read(375), plain_size, False)
+            if count2 != count:
+                raise PointCloudError(f"{path}: corrupt LAZ file: the header declares {count} points but the "
+                                      f"data decompresses to {count2}")
+            fh2.seek(0)
+            return _read_points(path, fh2, count, True, attributes)
+
+
+def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
+    """Decompress a LAZ file to a plain LAS file in a forked child process.
+
+    lazrs *aborts the process* on some corrupt files (e.g. a garbage chunk count asks for 60 GB, and
+    Rust aborts when an allocation fails), so a corrupt LAZ must not be decoded in the process that
+    reports the error. The child's address space is capped at its current size plus a few times the
+    declared point data; a crash, a refused allocation or a hang becomes a :class:`PointCloudError`.
+    Where ``fork`` is unavailable the file is decoded in-process.
+    """
+    out = tmp / "points.las"
+    if not hasattr(os, "fork"):  # pragma: no cover - Windows
+        _decompress(path, out)
+        return out
+    limit = _current_vm_bytes() + 4 * raw_bytes + (768 << 20)
+    pid = os.fork()
+    if pid == 0:  # child: never returns
+        code = 3
+        try:
+            # a crash report of the child (Rust's allocation failure, faulthandler) is not for the user
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, 2)
+            try:
+                import faulthandler
+
+                faulthandler.disable()
+            except Exception:  # noqa: BLE001
+                pass
+            try:
+                import resource
+
+                resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+            except (ImportError, ValueError, OSError):
+                pass
+            _decompress(path, out)
+            code = 0
+        except BaseException:  # noqa: BLE001
+            code = 3
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + 60 + raw_bytes / 20e6
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            raise PointCloudError(f"{path}: corrupt LAZ file: decompressing the point data did not finish")
+        time.sleep(0.005)
+    if not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0 and out.exists()):
+        raise PointCloudError(f"{path}: corrupt or unsupported LAZ file: the point data cannot be decompressed")
+    return out
+
+
+def _decompress(path: Path, out: Path) -> None:
+    import laspy
+
+    # single-threaded lazrs: thread pools and their malloc arenas would make the address-space cap
+    # depend on the number of cores
+    las = laspy.read(str(path), laz_backend=laspy.LazBackend.Lazrs)
+    las.write(str(out), do_compress=False)
+
+
+def _current_vm_bytes() -> int:
+    try:
+        with open("/proc/self/status", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"VmSize:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 8 << 30
+
+
+def _read_points(path: Path, fh, count: int, compressed: bool, attributes: bool) -> PointCloud:
+    """The points of an uncompressed LAS file object (its header already checked), in chunks."""
+    import laspy
+
+    try:
+        with laspy.open(fh, closefd=False) as reader:
+            hdr = reader.header
+            names = [n for n in reader.header.point_format.dimension_names if n not in ("X", "Y", "Z")]
+            pts = np.empty((count, 3), dtype=np.float64)
+            attrs: dict[str, list[np.ndarray]] = {n: [] for n in names} if attributes else {}
+            got = 0
+            scales, offsets = np.asarray(hdr.scales, np.float64), np.asarray(hdr.offsets, np.float64)
+            for chunk in reader.chunk_iterator(CHUNK_POINTS):
+                k = len(chunk)
+                if got + k > count:
+                    raise PointCloudError(f"{path}: corrupt LAS/LAZ file: more points than the header declares")
+                for j, dim in enumerate(("X", "Y", "Z")):
+                    raw = np.asarray(chunk[dim], dtype=np.int64)
+                    pts[got : got + k, j] = raw * scales[j] + offsets[j]
+                for n in attrs:
+                    attrs[n].append(np.array(chunk[n]))
+                got += k
+    except PointCloudError:
+        raise
+    except MemoryError:
+        raise PointCloudError(f"{path}: too large to load into memory ({count} points)") from None
+    except Exception as exc:  # noqa: BLE001 - laspy/lazrs errors carry library text; say it in words
+        logger.debug("%s: laspy failed", path, exc_info=exc)
+        what = "LAZ point data cannot be decompressed" if compressed else "LAS point data cannot be decoded"
+        raise PointCloudError(f"{path}: corrupt or unsupported LAS/LAZ file: the {what}") from None
+    if got != count:
+        raise PointCloudError(f"{path}: truncated: the header declares {count} points but only {got} could be read")
+    out = {n: (np.concatenate(v) if v else np.empty(0)) for n, v in attrs.items()}
+    out = {n: v for n, v in out.items() if v.ndim == 1 and len(v) == count}
+    meta = {"las_point_format": int(hdr.point_format.id), "las_version": str(hdr.version)}
+    return PointCloud(pts, out, "las", meta)
+
+
+# ----------------------------------------------------------------------------------------------------
+# writer
+# ----------------------------------------------------------------------------------------------------
+
+_RGB = ("red", "green", "blue")
+
+
+def _scale_offset(values: np.ndarray) -> tuple[float, float]:
+    """The smallest power-of-ten scale that spreads the axis over at most 2e9 integer steps (int32),
+    and an offset near its minimum: the quantisation error is at most half a step, i.e. at most
+    span / 4e8 (2.5 µm on a 1 km tile)."""
+    lo, hi = float(values.min()), float(values.max())
+    span = max(hi - lo, abs(lo) * 1e-12, 1e-9)
+    scale = 10.0 ** math.ceil(math.log10(span / 2e9))
+    offset = math.floor(lo / scale / 1000) * scale * 1000
+    return scale, offset
+
+
+def las_bytes(cloud: PointCloud, compress: bool) -> bytes:
+    """The bytes of a LAS 1.4 file (LAZ when ``compress``): point format 6, or 7 with colours, or the
+    source's format when the cloud came from LAS; attributes matching a standard dimension fill it
+    (8-bit colours are widened to LAS's 16 bits), other numeric attributes become extra bytes."""
+    import laspy
+
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    n = len(pts)
+    attrs = {k: np.asarray(v) for k, v in cloud.attributes.items() if np.asarray(v).shape == (n,)}
+    has_rgb = all(k in attrs for k in _RGB)
+    fmt = cloud.meta.get("las_point_format") if cloud.source_format == "las" else None
+    if fmt is None or fmt < 6:
+        fmt = 7 if has_rgb else 6
+    header = laspy.LasHeader(point_format=fmt, version="1.4")
+    standard = set(header.point_format.dimension_names)
+    extra = [k for k, v in attrs.items() if k not in standard and v.dtype.kind in "fiu" and k.isidentifier()]
+    if extra:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=attrs[k].dtype) for k in extra])
+    so = [_scale_offset(pts[:, j]) if n else (0.001, 0.0) for j in range(3)]
+    header.scales = np.array([s for s, _ in so])
+    header.offsets = np.array([o for _, o in so])
+    las = laspy.LasData(header)
+    for j, dim in enumerate(("X", "Y", "Z")):
+        ints = np.round((pts[:, j] - so[j][1]) / so[j][0])
+        las[dim] = ints.astype(np.int32)
+    for k, v in attrs.items():
+        if k in ("X", "Y", "Z", "x", "y", "z"):
+            continue
+        if k in standard:
+            if k in _RGB and v.dtype == np.uint8:
+                v = v.astype(np.uint16) * 257
+            try:
+                las[k] = v
+            except Exception:  # noqa: BLE001 - a value the dimension cannot hold: leave it at 0
+                logger.warning("attribute %r does not fit LAS dimension %r; not written", k, k)
+        elif k in extra:
+            las[k] = v
+    buf = _stdio.BytesIO()
+    las.write(buf, do_compress=compress)
+    return buf.getvalue()

@@ -1,0 +1,152 @@
+"""Reading text data line by line with a bounded line length, in blocks for speed.
+
+Shared by the ASCII PLY and ASCII PCD readers: every element instance is one line with a declared
+number of values, so a short line is an error naming its line number instead of shifting every
+later value by one.
+"""
+
+from __future__ import annotations
+
+import io as _stdio
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from gctr_cli.io.errors import PointCloudError, quote
+
+__all__ = ["MAX_LINE", "LineReader", "parse_float", "read_rows"]
+
+#: longest line accepted in a text body (bytes); a longer one means the file is not text we can read
+MAX_LINE = 1 << 20
+#: bytes read per block
+BLOCK = 1 << 22
+
+
+def parse_float(tok: bytes) -> float | None:
+    """A decimal number token (``1``, ``-2.5e3``, ``nan``, ``inf``) as float, or None."""
+    if b"_" in tok:  # Python accepts 1_000; no point cloud writer does
+        return None
+    try:
+        return float(tok)
+    except ValueError:
+        return None
+
+
+class LineReader:
+    """Whole lines of a binary file object from its current position, counting line numbers."""
+
+    def __init__(self, fh, path: Path, lines_before: int) -> None:
+        self.fh, self.path = fh, path
+        self.lineno = lines_before  # number of the last line handed out
+        self._buf = b""
+        self._pos = 0  # start of the unread part of _buf
+        self._eof = False
+
+    def _fill(self) -> bool:
+        if self._eof:
+            return False
+        chunk = self.fh.read(BLOCK)
+        if not chunk:
+            self._eof = True
+            return False
+        self._buf = self._buf[self._pos :] + chunk
+        self._pos = 0
+        return True
+
+    def _too_long(self) -> PointCloudError:
+        return PointCloudError(
+            f"{self.path}: line {self.lineno + 1} is longer than {MAX_LINE // 1024} KiB (the data is not text lines)"
+        )
+
+    def take(self, max_lines: int) -> tuple[bytes, int]:
+        """Up to ``max_lines`` whole lines (each ending in ``\\n``, except maybe the file's last) and
+        their number; ``(b"", 0)`` at the end of the file."""
+        while True:
+            nl = self._buf.find(b"\n", self._pos)
+            if nl >= 0 or self._eof:
+                break
+            if len(self._buf) - self._pos > MAX_LINE:
+                raise self._too_long()
+            self._fill()
+        start = self._pos
+        if nl < 0:  # last line of the file, without a line end
+            if len(self._buf) == start:
+                return b"", 0
+            if len(self._buf) - start > MAX_LINE:
+                raise self._too_long()
+            self._pos = len(self._buf)
+            self.lineno += 1
+            return self._buf[start:], 1
+        if nl - start > MAX_LINE:
+            raise self._too_long()
+        if max_lines == 1:
+            k, cut = 1, nl + 1
+        else:
+            ends = np.flatnonzero(np.frombuffer(self._buf, dtype=np.uint8, offset=start) == 10)
+            k = min(max_lines, len(ends))
+            cut = start + int(ends[k - 1]) + 1
+        self._pos = cut
+        self.lineno += k
+        return self._buf[start:cut], k
+
+    def line(self) -> bytes | None:
+        """The next line without its line end, or None at the end of the file."""
+        data, k = self.take(1)
+        return data.rstrip(b"\r\n") if k else None
+
+
+def _fast_block(block: bytes, n_values: int) -> np.ndarray | None:
+    """The rows of a block of plain numeric lines via numpy's C parser, or None (slow path decides)."""
+    if b"_" in block or b"\r" in block.replace(b"\r\n", b"\n") or b"\x00" in block:
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            arr = np.loadtxt(_stdio.BytesIO(block), dtype=np.float64, comments=None, ndmin=2, encoding="latin-1")
+        except ValueError:
+            return None
+    n_lines = block.count(b"\n") + (not block.endswith(b"\n"))
+    if arr.shape != (n_lines, n_values):
+        return None  # blank lines or a wrong number of values: the slow path says which
+    return arr
+
+
+def read_rows(reader: LineReader, n_rows: int, n_values: int, what: str, plural: str = "lines") -> np.ndarray:
+    """``n_rows`` lines of exactly ``n_values`` numbers each, as an ``(n_rows, n_values)`` float64 array.
+
+    Blank lines are skipped. The caller has checked that the file is large enough for the declared
+    rows (at least two bytes per value), so the array is bounded by the file size. Errors name the
+    line: a line with too few or too many values, a non-numeric value, or data that ends early.
+    """
+    out = np.empty((n_rows, n_values), dtype=np.float64)
+    got = 0
+    while got < n_rows:
+        start_line = reader.lineno
+        block, k = reader.take(min(n_rows - got, 1 << 16))
+        if k == 0:
+            raise PointCloudError(
+                f"{reader.path}: truncated: the header declares {n_rows} {plural} but the data "
+                f"ends after {got}"
+            )
+        arr = _fast_block(block, n_values)
+        if arr is not None:
+            out[got : got + len(arr)] = arr
+            got += len(arr)
+            continue
+        for i, raw in enumerate(block.split(b"\n")[:k]):
+            toks = raw.split()
+            if not toks:
+                continue
+            lineno = start_line + i + 1
+            if len(toks) != n_values:
+                raise PointCloudError(
+                    f"{reader.path}: line {lineno}: {what} has {len(toks)} values, the header declares {n_values}"
+                )
+            for j, t in enumerate(toks):
+                v = parse_float(t)
+                if v is None:
+                    raise PointCloudError(f"{reader.path}: line {lineno}: non-numeric value {quote(t)} in {what}")
+                out[got, j] = v
+            got += 1  # never more than n_rows: the block holds at most n_rows - got lines
+    return out

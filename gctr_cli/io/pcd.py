@@ -1,0 +1,293 @@
+"""PCD (PCL's format): ``DATA ascii``, ``binary`` and ``binary_compressed`` (reader and writer).
+
+Scalar fields (``COUNT 1``) other than x y z are kept as attributes; a packed ``rgb``/``rgba`` float
+is unpacked into ``red``/``green``/``blue`` (uint8). ``binary_compressed`` data is LZF, decompressed
+with python-lzf after the declared sizes have been checked: the uncompressed size must equal the
+header's points x point size and LZF expands at most about 88-fold, so a 200-byte file can never ask
+for gigabytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gctr_cli.io.cloud import PointCloud
+from gctr_cli.io.errors import PointCloudError, clean, quote
+from gctr_cli.io.lines import LineReader, parse_float, read_rows
+from gctr_cli.io.ply import format_columns
+
+__all__ = ["read_pcd", "pcd_bytes"]
+
+logger = logging.getLogger("gctr_cli.io")
+
+MAX_HEADER_BYTES = 1 << 20
+MAX_HEADER_LINE = 1 << 16
+#: an LZF stream of c bytes decompresses to at most this many times c bytes (a 3-byte back
+#: reference copies up to 264 bytes)
+LZF_MAX_RATIO = 88
+
+_KEYS = ("VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+_TYPES = {("F", 4), ("F", 8), ("I", 1), ("I", 2), ("I", 4), ("I", 8), ("U", 1), ("U", 2), ("U", 4), ("U", 8)}
+
+
+@dataclass
+class _Header:
+    fields: list[str]
+    sizes: list[int]
+    types: list[str]
+    counts: list[int]
+    points: int
+    data: str
+    lines: int  # header lines
+
+    def dtypes(self) -> list[np.dtype]:
+        return [np.dtype("<" + t.lower() + str(s)) for t, s in zip(self.types, self.sizes)]
+
+    def point_size(self) -> int:
+        return sum(s * c for s, c in zip(self.sizes, self.counts))
+
+
+def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
+    hdr = _parse_header(fh, path)
+    data_bytes = size - fh.tell()
+    for c in "xyz":
+        if c not in hdr.fields:
+            missing = [m for m in "xyz" if m not in hdr.fields]
+            shown = " ".join(quote(f) for f in hdr.fields[:20]) or "none"
+            raise PointCloudError(
+                f"{path}: PCD header has no {'/'.join(missing)} field{'s' if len(missing) > 1 else ''} (fields: {shown})"
+            )
+        if hdr.counts[hdr.fields.index(c)] != 1:
+            raise PointCloudError(f"{path}: PCD field '{c}' has COUNT {hdr.counts[hdr.fields.index(c)]}, expected 1")
+    n = hdr.points
+    keep = [i for i, f in enumerate(hdr.fields) if hdr.counts[i] == 1 and f != "_" and (attributes or f in "xyz")]
+    dtypes = hdr.dtypes()
+
+    if hdr.data == "ascii":
+        ncols = sum(hdr.counts)
+        if n * ncols * 2 > data_bytes:
+            raise PointCloudError(
+                f"{path}: truncated or corrupt: the header declares {n} points of {ncols} values (at least "
+                f"2 bytes per value) but only {data_bytes} bytes follow the header"
+            )
+        rows = read_rows(LineReader(fh, path, hdr.lines), n, ncols, "point", "points")
+        starts = np.cumsum([0] + hdr.counts[:-1])
+        # x y z keep the text's value (float64); attributes get their declared type
+        table = {hdr.fields[i]: rows[:, starts[i]] if hdr.fields[i] in "xyz" else rows[:, starts[i]].astype(dtypes[i])
+                 for i in keep}
+    elif hdr.data == "binary":
+        point_size = hdr.point_size()
+        if n * point_size > data_bytes:
+            raise PointCloudError(
+                f"{path}: truncated: the header declares {n} points of {point_size} bytes but only "
+                f"{data_bytes} bytes of binary data follow the header (expected {n * point_size})"
+            )
+        body = fh.read(n * point_size)
+        rec_dtype = np.dtype([(f"f{i}", dt, (c,)) if c > 1 else (f"f{i}", dt)
+                              for i, (dt, c) in enumerate(zip(dtypes, hdr.counts))])
+        rec = np.frombuffer(body, dtype=rec_dtype, count=n)
+        table = {hdr.fields[i]: rec[f"f{i}"] for i in keep}
+    else:
+        table = _read_compressed(path, fh, hdr, data_bytes, keep)
+
+    pts = np.empty((n, 3), dtype=np.float64)
+    for j, c in enumerate("xyz"):
+        pts[:, j] = table.pop(c)
+    attrs = {}
+    if attributes:
+        for name, v in table.items():
+            if name in ("rgb", "rgba") and v.dtype.itemsize == 4:
+                packed = np.ascontiguousarray(v).view("<u4")
+                attrs["red"] = ((packed >> 16) & 0xFF).astype(np.uint8)
+                attrs["green"] = ((packed >> 8) & 0xFF).astype(np.uint8)
+                attrs["blue"] = (packed & 0xFF).astype(np.uint8)
+            else:
+                attrs[name] = np.ascontiguousarray(v)
+    return PointCloud(pts, attrs, "pcd")
+
+
+def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[int]) -> dict[str, np.ndarray]:
+    """binary_compressed: uint32 compressed size, uint32 uncompressed size, LZF data; column-major."""
+    import lzf
+
+    n = hdr.points
+    head = fh.read(8)
+    if len(head) < 8:
+        raise PointCloudError(f"{path}: truncated: binary_compressed PCD has no size fields after the header")
+    csize, usize = struct.unpack("<II", head)
+    point_size = hdr.point_size()
+    if usize != n * point_size:
+        raise PointCloudError(
+            f"{path}: corrupt binary_compressed PCD: uncompressed size {usize} bytes does not match "
+            f"{n} points x {point_size} bytes declared by the header"
+        )
+    if data_bytes - 8 < csize:
+        raise PointCloudError(
+            f"{path}: truncated: binary_compressed PCD declares {csize} compressed bytes but only "
+            f"{max(data_bytes - 8, 0)} follow"
+        )
+    if usize > LZF_MAX_RATIO * csize + 64:
+        raise PointCloudError(
+            f"{path}: corrupt binary_compressed PCD: it declares {usize} uncompressed bytes from only "
+            f"{csize} compressed bytes (LZF expands at most {LZF_MAX_RATIO}-fold)"
+        )
+    raw = b""
+    if n:
+        comp = fh.read(csize)
+        try:
+            raw = lzf.decompress(comp, usize + 1) if csize else None  # +1: detect output longer than declared
+        except ValueError:  # python-lzf: invalid LZF data
+            raw = None
+        if raw is None or len(raw) != usize:
+            got = "more" if raw is not None and len(raw) > usize else ("fewer" if raw is not None else "invalid")
+            detail = "the LZF data is invalid" if got == "invalid" else f"the LZF data decompresses to {got} bytes than declared"
+            raise PointCloudError(f"{path}: corrupt binary_compressed PCD data: {detail}")
+    dtypes = hdr.dtypes()
+    offs = np.cumsum([0] + [n * dt.itemsize * c for dt, c in zip(dtypes, hdr.counts)])
+    return {hdr.fields[i]: np.frombuffer(raw, dtype=dtypes[i], count=n, offset=int(offs[i])) for i in keep}
+
+
+def _parse_header(fh, path: Path) -> _Header:
+    vals: dict[str, list[str]] = {}
+    lineno = 0
+    consumed = 0
+    data_line = None
+    while True:
+        raw = fh.readline(MAX_HEADER_LINE)
+        lineno += 1
+        consumed += len(raw)
+        if not raw:
+            break
+        if consumed > MAX_HEADER_BYTES or (len(raw) == MAX_HEADER_LINE and not raw.endswith(b"\n")):
+            raise PointCloudError(f"{path}: not a PCD file (header line {lineno} is too long / not text)")
+        line = raw.decode("latin-1").strip()
+        if not line or line.startswith("#"):
+            continue
+        words = line.split()
+        key = words[0].upper()
+        if key not in _KEYS:
+            if not vals:
+                raise PointCloudError(f"{path}: not a PCD file (header line {lineno} does not start with a PCD keyword)")
+            if parse_float(words[0].encode("latin-1")) is not None:
+                raise PointCloudError(f"{path}: broken PCD header: missing DATA line (numeric data on line {lineno})")
+            raise PointCloudError(f"{path}: broken PCD header: unknown keyword {quote(words[0])} on line {lineno}")
+        if key == "COLUMNS":
+            key = "FIELDS"
+        if key in vals:
+            raise PointCloudError(f"{path}: broken PCD header: {key} appears twice (line {lineno})")
+        vals[key] = words[1:]
+        if key == "DATA":
+            data_line = lineno
+            break
+    if not vals:
+        raise PointCloudError(f"{path}: not a PCD file (no header found)")
+    if data_line is None:
+        raise PointCloudError(f"{path}: broken PCD header: missing DATA line")
+
+    def bad(msg: str) -> PointCloudError:
+        return PointCloudError(f"{path}: broken PCD header: {msg}")
+
+    def shown(items: list[str]) -> str:
+        return quote(" ".join(items), 60)
+
+    fields = vals.get("FIELDS")
+    if not fields:
+        raise bad("missing FIELDS line")
+    nf = len(fields)
+    named = [f for f in fields if f != "_"]
+    if len(set(named)) != len(named):
+        raise bad(f"duplicate names in FIELDS {shown(fields)}")
+
+    def int_list(key: str, default: int | None) -> list[int]:
+        if key not in vals:
+            if default is None:
+                raise bad(f"missing {key} line")
+            return [default] * nf
+        items = vals[key]
+        if len(items) != nf:
+            raise bad(f"{key} has {len(items)} entries but FIELDS has {nf}")
+        if not all(v.isascii() and v.isdigit() and len(v) < 10 for v in items):
+            raise bad(f"{key} must be small non-negative integers, got {shown(items)}")
+        return [int(v) for v in items]
+
+    sizes = int_list("SIZE", None)
+    counts = int_list("COUNT", 1)
+    if "TYPE" not in vals:
+        raise bad("missing TYPE line")
+    types = [t.upper() for t in vals["TYPE"]]
+    if len(types) != nf:
+        raise bad(f"TYPE has {len(types)} entries but FIELDS has {nf}")
+    for f, t, s, c in zip(fields, types, sizes, counts):
+        if (t, s) not in _TYPES:
+            raise bad(f"unsupported TYPE/SIZE {quote(t, 8)}/{s} for field {quote(f)}")
+        if c < 1:
+            raise bad(f"COUNT {c} for field {quote(f)} must be >= 1")
+
+    def one_int(key: str) -> int | None:
+        if key not in vals:
+            return None
+        items = vals[key]
+        if len(items) != 1 or not (items[0].isascii() and items[0].isdigit()):
+            raise bad(f"bad {key} value {shown(items)} (expected a non-negative integer)")
+        return int(items[0])
+
+    points = one_int("POINTS")
+    width, height = one_int("WIDTH"), one_int("HEIGHT")
+    if points is None:
+        if width is None:
+            raise bad("missing POINTS (and WIDTH) line")
+        points = width * (height if height is not None else 1)
+    elif width is not None and width * (height if height is not None else 1) != points:
+        logger.warning("%s: PCD header WIDTH*HEIGHT = %d does not match POINTS = %d; using POINTS",
+                       clean(path), width * (height or 1), points)
+    data = " ".join(vals["DATA"]).lower()
+    if data not in ("ascii", "binary", "binary_compressed"):
+        raise bad(f"unknown DATA type {quote(data)} (expected ascii, binary or binary_compressed)")
+    return _Header(fields, sizes, types, counts, points, data, lineno)
+
+
+# ----------------------------------------------------------------------------------------------------
+# writer
+# ----------------------------------------------------------------------------------------------------
+
+_PCD_TYPE = {"f": "F", "i": "I", "u": "U"}
+
+
+def pcd_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
+    """The bytes of a PCD file: float64 x y z plus the 1-D numeric attributes in their own types
+    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float); binary, or ASCII with ``%.17g``."""
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    n = len(pts)
+    cols: list[tuple[str, np.ndarray]] = [("x", pts[:, 0]), ("y", pts[:, 1]), ("z", pts[:, 2])]
+    attrs = dict(cloud.attributes)
+    if all(k in attrs for k in ("red", "green", "blue")):
+        r, g, b = (np.asarray(attrs.pop(k)).astype(np.uint32) & 0xFF for k in ("red", "green", "blue"))
+        cols.append(("rgb", ((r << 16) | (g << 8) | b).astype("<u4").view("<f4")))
+    for name, v in attrs.items():
+        v = np.asarray(v)
+        if v.shape != (n,) or v.dtype.kind not in "fiub" or name in ("x", "y", "z"):
+            continue
+        if v.dtype.kind == "b":
+            v = v.astype(np.uint8)
+        cols.append(("_".join(str(name).split()) or "attr", v.astype(v.dtype.newbyteorder("<"))))
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
+        f"FIELDS {' '.join(c for c, _ in cols)}\n"
+        f"SIZE {' '.join(str(v.dtype.itemsize) for _, v in cols)}\n"
+        f"TYPE {' '.join(_PCD_TYPE[v.dtype.kind] for _, v in cols)}\n"
+        f"COUNT {' '.join('1' for _ in cols)}\n"
+        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {'binary' if binary else 'ascii'}\n"
+    )
+    if binary:
+        rec = np.empty(n, dtype=[(f"c{i}", v.dtype) for i, (_, v) in enumerate(cols)])
+        for i, (_, v) in enumerate(cols):
+            rec[f"c{i}"] = v
+        body = rec.tobytes()
+    else:
+        body = format_columns([v if name != "rgb" else v.astype(np.float64) for name, v in cols])
+    return header.encode("ascii") + body

@@ -1,0 +1,320 @@
+"""LAS/LAZ and E57 readers, the writers of every output format, gctr apply and register --aligned."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import REPO, apply, rotation, similarity
+from gctr_cli import cli
+from gctr_cli.io import (
+    SUPPORTED_EXTENSIONS,
+    WRITE_EXTENSIONS,
+    MatrixError,
+    PointCloud,
+    PointCloudError,
+    load_point_cloud,
+    read_matrix,
+    read_point_cloud,
+    transform_cloud,
+    write_aligned,
+    write_matrix,
+    write_point_cloud,
+)
+
+laspy = pytest.importorskip("laspy")
+pye57 = pytest.importorskip("pye57")
+
+BUNNY = REPO / "data" / "models" / "bunny.ply"
+UTM = np.array([500_000.0, 5_400_000.0, 300.0])
+
+
+def utm_las(path: Path, n: int = 2000, seed: int = 0, version: str = "1.2", point_format: int = 3):
+    """A LAS/LAZ file with UTM offsets and millimetre scale; returns the exact expected coordinates
+    (X * scale + offset, computed in float64) and the stored intensity / colours."""
+    rng = np.random.default_rng(seed)
+    hdr = laspy.LasHeader(point_format=point_format, version=version)
+    hdr.scales = np.array([0.001, 0.001, 0.001])
+    hdr.offsets = UTM.copy()
+    las = laspy.LasData(hdr)
+    ints = [rng.integers(-(10**7), 10**7, n), rng.integers(-(10**7), 10**7, n), rng.integers(0, 10**5, n)]
+    las.X, las.Y, las.Z = ints
+    las.intensity = rng.integers(0, 65535, n).astype(np.uint16)
+    las.classification = rng.integers(0, 20, n).astype(np.uint8)
+    las.red = rng.integers(0, 65535, n).astype(np.uint16)
+    las.green = rng.integers(0, 65535, n).astype(np.uint16)
+    las.blue = rng.integers(0, 65535, n).astype(np.uint16)
+    las.write(path)
+    expected = np.stack([ints[j] * 0.001 + UTM[j] for j in range(3)], axis=1)
+    return expected, las
+
+
+# ----------------------------------------------------------------------------------------------------
+# LAS / LAZ
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name, version, fmt", [("tile.las", "1.2", 3), ("tile.laz", "1.2", 3),
+                                                ("tile14.las", "1.4", 7), ("tile14.laz", "1.4", 7)])
+def test_las_laz_keep_utm_coordinates_exactly_and_attributes(tmp_path, name, version, fmt):
+    expected, las = utm_las(tmp_path / name, version=version, point_format=fmt)
+    cloud = read_point_cloud(tmp_path / name)
+    np.testing.assert_array_equal(cloud.points, expected)  # bit-exact: no float32 anywhere
+    assert cloud.points.dtype == np.float64
+    np.testing.assert_array_equal(cloud.attributes["intensity"], las.intensity)
+    np.testing.assert_array_equal(cloud.attributes["classification"], np.asarray(las.classification))
+    np.testing.assert_array_equal(cloud.attributes["red"], las.red)
+    np.testing.assert_array_equal(load_point_cloud(tmp_path / name), expected)
+
+
+def test_las_truncated_and_lying_headers_are_refused_before_allocating(tmp_path):
+    expected, _ = utm_las(tmp_path / "ok.las", n=500)
+    data = (tmp_path / "ok.las").read_bytes()
+    (tmp_path / "cut.las").write_bytes(data[: len(data) - 100])
+    with pytest.raises(PointCloudError, match=r"cut\.las: truncated: the header declares 500 points"):
+        load_point_cloud(tmp_path / "cut.las")
+    big = bytearray(data)
+    big[107:111] = (4_000_000_000).to_bytes(4, "little")  # legacy point count: 4 billion points
+    (tmp_path / "huge.las").write_bytes(bytes(big))
+    with pytest.raises(PointCloudError, match=r"huge\.las: truncated: the header declares 4000000000 points"):
+        load_point_cloud(tmp_path / "huge.las")
+    (tmp_path / "text.las").write_text("1 2 3\n" * 100)
+    with pytest.raises(PointCloudError, match=r"text\.las: not a LAS/LAZ file"):
+        load_point_cloud(tmp_path / "text.las")
+
+
+def test_laz_lying_point_count_and_corrupt_data(tmp_path):
+    utm_las(tmp_path / "ok.laz", n=3000)
+    data = bytearray((tmp_path / "ok.laz").read_bytes())
+    lie = bytearray(data)
+    lie[107:111] = (4_000_000_000).to_bytes(4, "little")
+    (tmp_path / "lie.laz").write_bytes(bytes(lie))
+    with pytest.raises(PointCloudError, match=r"lie\.laz: corrupt LAZ header: it declares 4000000000 points"):
+        load_point_cloud(tmp_path / "lie.laz")
+    garbage = bytearray(data)
+    start = int.from_bytes(data[96:100], "little")
+    garbage[start + 50 :] = bytes(np.random.default_rng(0).integers(0, 256, len(data) - start - 50, dtype=np.uint8))
+    (tmp_path / "garbage.laz").write_bytes(bytes(garbage))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "garbage.laz")
+    msg = str(ei.value)
+    assert "garbage.laz" in msg and ("corrupt" in msg or "truncated" in msg), msg
+    assert "Error" not in msg and "Exception" not in msg, msg
+
+
+# ----------------------------------------------------------------------------------------------------
+# E57
+# ----------------------------------------------------------------------------------------------------
+
+
+def quat(axis, angle_deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    h = np.radians(angle_deg) / 2
+    return np.array([np.cos(h), *(np.sin(h) * axis)])  # w x y z, as E57 stores it
+
+
+def test_e57_merges_every_scan_with_its_pose(tmp_path):
+    rng = np.random.default_rng(2)
+    # pye57 stores cartesian coordinates as float32: use float32 values so the file holds them exactly
+    scans = [rng.normal(size=(300, 3)).astype(np.float32).astype(np.float64),
+             (rng.normal(size=(200, 3)) * 2).astype(np.float32).astype(np.float64)]
+    poses = [(quat([0, 0, 1], 0), UTM), (quat([1, 2, 3], 70), UTM + [25.0, -13.0, 2.0])]
+    e = pye57.E57(str(tmp_path / "project.e57"), mode="w")
+    for pts, (q, t) in zip(scans, poses):
+        e.write_scan_raw({"cartesianX": pts[:, 0], "cartesianY": pts[:, 1], "cartesianZ": pts[:, 2],
+                          "intensity": np.linspace(0, 1, len(pts))}, rotation=q, translation=t)
+    e.close()
+    cloud = read_point_cloud(tmp_path / "project.e57")
+    expected = np.vstack([pts @ rotation(q[1:], 2 * np.degrees(np.arccos(q[0]))).T + t if q[0] < 1 else pts + t
+                          for pts, (q, t) in zip(scans, poses)])
+    assert cloud.points.shape == (500, 3)
+    np.testing.assert_allclose(cloud.points, expected, rtol=0, atol=1e-8)  # float64 all the way: 10 nm at UTM size
+    assert cloud.attributes["intensity"].shape == (500,)
+
+
+def test_e57_corrupt_files_name_the_file_in_words(tmp_path):
+    (tmp_path / "text.e57").write_text("1 2 3\n" * 50)
+    with pytest.raises(PointCloudError, match=r"text\.e57: not an E57 file"):
+        load_point_cloud(tmp_path / "text.e57")
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    e = pye57.E57(str(tmp_path / "ok.e57"), mode="w")
+    e.write_scan_raw({"cartesianX": pts[:, 0], "cartesianY": pts[:, 1], "cartesianZ": pts[:, 2]})
+    e.close()
+    data = (tmp_path / "ok.e57").read_bytes()
+    (tmp_path / "cut.e57").write_bytes(data[: len(data) // 2])
+    bad = bytearray(data)
+    bad[len(data) // 3 : len(data) // 3 + 64] = b"\xff" * 64
+    (tmp_path / "flipped.e57").write_bytes(bytes(bad))
+    for name in ("cut.e57", "flipped.e57"):
+        with pytest.raises(PointCloudError) as ei:
+            load_point_cloud(tmp_path / name)
+        msg = str(ei.value)
+        assert name in msg and "E57" in msg, msg
+        assert "Exception" not in msg and "Error" not in msg, msg
+
+
+# ----------------------------------------------------------------------------------------------------
+# writers
+# ----------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def rich_cloud():
+    rng = np.random.default_rng(5)
+    n = 300
+    pts = rng.normal(size=(n, 3)) * 10 + UTM
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    attrs = {"intensity": rng.integers(0, 60000, n).astype(np.uint16),
+             "red": rng.integers(0, 256, n).astype(np.uint8), "green": rng.integers(0, 256, n).astype(np.uint8),
+             "blue": rng.integers(0, 256, n).astype(np.uint8),
+             "nx": normals[:, 0].astype(np.float32), "ny": normals[:, 1].astype(np.float32),
+             "nz": normals[:, 2].astype(np.float32)}
+    return PointCloud(pts, attrs)
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+def test_ply_pcd_writers_keep_coordinates_and_every_attribute(tmp_path, rich_cloud, ext):
+    write_point_cloud(tmp_path / f"out{ext}", rich_cloud)
+    back = read_point_cloud(tmp_path / f"out{ext}")
+    np.testing.assert_array_equal(back.points, rich_cloud.points)
+    for k, v in rich_cloud.attributes.items():
+        np.testing.assert_array_equal(back.attributes[k], v, err_msg=k)
+        assert back.attributes[k].dtype == v.dtype, k
+
+
+@pytest.mark.parametrize("ext", [".las", ".laz"])
+def test_las_writer_quantises_finely_and_keeps_standard_and_extra_attributes(tmp_path, rich_cloud, ext):
+    write_point_cloud(tmp_path / f"out{ext}", rich_cloud)
+    back = read_point_cloud(tmp_path / f"out{ext}")
+    span = np.ptp(rich_cloud.points, axis=0)
+    assert (np.abs(back.points - rich_cloud.points) <= span / 4e8 + 1e-9).all()  # half a decimal step
+    np.testing.assert_array_equal(back.attributes["intensity"], rich_cloud.attributes["intensity"])
+    np.testing.assert_array_equal(back.attributes["red"], rich_cloud.attributes["red"].astype(np.uint16) * 257)
+    np.testing.assert_array_equal(back.attributes["nx"], rich_cloud.attributes["nx"])  # extra bytes
+
+
+@pytest.mark.parametrize("ext", [".xyz", ".pts", ".txt"])
+def test_text_writers_round_trip_exactly_with_attribute_columns(tmp_path, rich_cloud, ext):
+    write_point_cloud(tmp_path / f"out{ext}", rich_cloud)
+    np.testing.assert_array_equal(load_point_cloud(tmp_path / f"out{ext}"), rich_cloud.points)
+    text = (tmp_path / f"out{ext}").read_text()
+    assert "# x y z intensity red green blue nx ny nz" in text
+
+
+def test_every_read_extension_is_listed_and_writers_cover_all_but_e57():
+    assert set(SUPPORTED_EXTENSIONS) == {".ply", ".pcd", ".xyz", ".pts", ".txt", ".las", ".laz", ".e57"}
+    assert set(WRITE_EXTENSIONS) == set(SUPPORTED_EXTENSIONS) - {".e57"}
+
+
+def test_transform_rotates_normals_and_moves_utm_points_precisely(rich_cloud):
+    T = similarity(2.0, rotation([1, 1, 0], 30), [-499_000.0, 10.0, 3.0])
+    moved = transform_cloud(rich_cloud, T)
+    exact = apply(T, rich_cloud.points - UTM) + T[:3, :3] @ UTM  # reference without the big offset
+    np.testing.assert_allclose(moved.points, exact, rtol=0, atol=1e-9 * np.abs(exact).max())
+    n0 = np.stack([rich_cloud.attributes[k] for k in ("nx", "ny", "nz")], 1).astype(np.float64)
+    n1 = np.stack([moved.attributes[k] for k in ("nx", "ny", "nz")], 1).astype(np.float64)
+    np.testing.assert_allclose(n1, n0 @ rotation([1, 1, 0], 30).T, atol=1e-6)
+    np.testing.assert_array_equal(moved.attributes["intensity"], rich_cloud.attributes["intensity"])
+
+
+def test_write_aligned_checks_matrix_and_output_before_reading(tmp_path, rich_cloud):
+    write_point_cloud(tmp_path / "in.ply", rich_cloud)
+    T = similarity(0.5, rotation([0, 0, 1], 90), [1.0, 2.0, 3.0])
+    moved = write_aligned(tmp_path / "in.ply", T, tmp_path / "sub" / "out.laz")
+    assert len(moved) == 300 and (tmp_path / "sub" / "out.laz").exists()
+    with pytest.raises(PointCloudError, match=r"out\.e57: unsupported extension '\.e57' for writing"):
+        write_aligned(tmp_path / "missing.ply", T, tmp_path / "out.e57")
+    with pytest.raises(MatrixError, match="last row"):
+        write_aligned(tmp_path / "in.ply", np.ones((4, 4)), tmp_path / "x.ply")
+
+
+# ----------------------------------------------------------------------------------------------------
+# command line
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_gctr_apply_writes_the_moved_cloud_in_the_output_format(tmp_path, rich_cloud):
+    write_point_cloud(tmp_path / "scan.laz", rich_cloud)
+    T = similarity(1.5, rotation([0, 1, 0], 20), [10.0, -5.0, 0.25])
+    write_matrix(tmp_path / "T.txt", T)
+    res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "T.txt"), str(tmp_path / "scan.laz"),
+                                        "-o", str(tmp_path / "moved.ply")])
+    assert res.exit_code == 0, res.output
+    assert "moved.ply (300 points)" in res.output
+    src = read_point_cloud(tmp_path / "scan.laz")
+    out = read_point_cloud(tmp_path / "moved.ply")
+    np.testing.assert_allclose(out.points, apply(T, src.points), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(out.attributes["intensity"], src.attributes["intensity"])
+
+    res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "T.txt"), str(tmp_path / "scan.laz"),
+                                        "-o", str(tmp_path / "moved.obj")])
+    assert res.exit_code == 2 and "moved.obj: cannot write a point cloud with extension '.obj'" in res.output
+    res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "nope.txt"), str(tmp_path / "scan.laz"),
+                                        "-o", str(tmp_path / "m.ply")])
+    assert res.exit_code == 2 and "nope.txt: file does not exist" in res.output
+
+
+def bunny_pair(folder: Path):
+    """bunny.ply as a LAZ source and, moved by a UTM-size similarity, as a two-scan E57 target."""
+    src = load_point_cloud(BUNNY)
+    T = similarity(2.5, rotation([1, -2, 0.5], 50), UTM + [3.0, -7.0, 0.0])
+    tgt = apply(T, src)
+    write_point_cloud(folder / "a.laz", PointCloud(src, {"intensity": np.arange(len(src), dtype=np.uint16)}))
+    e = pye57.E57(str(folder / "b.e57"), mode="w")
+    q, t = quat([0, 0, 1], 35), UTM + [10.0, 4.0, -1.0]
+    Rq = rotation([0, 0, 1], 35)
+    for part in (tgt[::2], tgt[1::2]):  # two scans, same pose, stored in scanner coordinates
+        loc = (part - t) @ Rq
+        e.write_scan_raw({"cartesianX": loc[:, 0], "cartesianY": loc[:, 1], "cartesianZ": loc[:, 2]},
+                         rotation=q, translation=t)
+    e.close()
+    write_matrix(folder / "gt.txt", T)
+    return src, T
+
+
+@pytest.mark.engine
+def test_register_laz_onto_e57_writes_the_aligned_cloud(tmp_path):
+    """End to end through the real CLI and engine: LAZ source, two-scan E57 target at UTM size."""
+    src, T = bunny_pair(tmp_path)
+    res = CliRunner().invoke(cli.main, ["register", str(tmp_path / "a.laz"), str(tmp_path / "b.e57"),
+                                        "--gt", str(tmp_path / "gt.txt"), "-o", str(tmp_path / "m.txt"),
+                                        "--aligned", str(tmp_path / "out.ply")])
+    assert res.exit_code == 0, res.output
+    assert "success: true" in res.output
+    T_est = read_matrix(tmp_path / "m.txt")
+    out = read_point_cloud(tmp_path / "out.ply")
+    a = read_point_cloud(tmp_path / "a.laz")
+    np.testing.assert_allclose(out.points, apply(T_est, a.points), rtol=0, atol=1e-6)  # the matrix, applied
+    diag = np.linalg.norm(np.ptp(apply(T, src), axis=0))
+    assert np.linalg.norm(out.points - apply(T, a.points), axis=1).max() < 0.01 * diag  # close to the truth
+    np.testing.assert_array_equal(out.attributes["intensity"], a.attributes["intensity"])
+
+
+def test_register_aligned_with_unwritable_extension_fails_before_registering(tmp_path, monkeypatch):
+    import fake_engine
+    import gctr_cli.engine
+
+    monkeypatch.setattr(gctr_cli.engine, "register", fake_engine.register)
+    called = []
+    monkeypatch.setattr(fake_engine, "register", functools.partial(called.append))
+    res = CliRunner().invoke(cli.main, ["register", str(BUNNY), str(BUNNY), "--aligned", str(tmp_path / "x.e57")])
+    assert res.exit_code == 2 and "x.e57: cannot write a point cloud with extension '.e57'" in res.output
+    assert not called
+
+
+def test_manifest_pairs_las_laz_e57_files(tmp_path):
+    for d in ("src", "tgt"):
+        (tmp_path / d).mkdir()
+    for stem, ext in (("a", ".laz"), ("b", ".las")):
+        (tmp_path / "src" / f"{stem}{ext}").write_bytes(b"x")
+        (tmp_path / "tgt" / f"{stem}.e57").write_bytes(b"x")
+    res = CliRunner().invoke(cli.main, ["manifest", str(tmp_path / "src"), str(tmp_path / "tgt"),
+                                        "-o", str(tmp_path / "pairs.csv")])
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "pairs.csv").read_text()
+    assert "a,src/a.laz,tgt/a.e57" in text and "b,src/b.las,tgt/b.e57" in text
