@@ -50,6 +50,7 @@ class TripletConfig(_Strict):
     n_source: int = Field(1500, ge=10, description="source triangles per pair")
     n_target: int = Field(25000, ge=10, description="target triangles per pair")
     min_edge_ratio: float = Field(0.5, gt=0, le=1, description="edges >= ratio * overlap-region diameter (sqrt(r))")
+    max_edge_ratio: float = Field(1.0, gt=0, description="edges <= ratio * overlap-region diameter when the region is a part of the cloud")
     min_angle_deg: float = Field(12.0, ge=0, lt=60, description="reject near-degenerate triangles")
 
 
@@ -104,7 +105,12 @@ class VerdictConfig(_Strict):
     finalists: int = Field(10, ge=1, description="hypotheses per round scored by surface agreement")
     max_normal_angle_deg: float = Field(30.0, gt=0, le=90, description="normals agree below this angle")
     distinct_ratio: float = Field(0.1, gt=0, description="a rival moves the source by more (RMS / robust diameter)")
-    full_agreement: float = Field(0.5, gt=0, le=1, description="agreement score at which the evidence counts as complete")
+    refined_finalists: int = Field(3, ge=1, description="distinct transforms refined and compared at the tight tolerances")
+    rival_pool: int = Field(30, ge=0, description="best unrefined transforms of the search also checked as rivals")
+    tight_distance_ratio: float = Field(0.02, gt=0, lt=1, description="final comparison: distance / robust target diameter")
+    tight_normal_angle_deg: float = Field(20.0, gt=0, le=90, description="final comparison: normals agree below this angle")
+    full_margin: float = Field(0.25, gt=0, le=1, description="lead over the best distinct rival at which confidence reaches 1")
+    ambiguity_ratio: float = Field(0.8, gt=0, le=1, description="a refused answer is called ambiguous when its rival reaches this share of its agreement")
 
 
 class EngineConfig(_Strict):
@@ -121,11 +127,12 @@ class EngineConfig(_Strict):
     verdict: VerdictConfig = VerdictConfig()
     overlap: Literal["auto"] | float = Field("auto", description="'auto' searches 0.25/0.5/0.75/1.0")
     overlap_candidates: tuple[float, ...] = Field((0.25, 0.5, 0.75, 1.0), description="ratios tried by 'auto'")
+    part_regions: tuple[float, ...] = Field((0.6,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
-    min_confidence: float = Field(0.0, ge=0, le=1, description="below this confidence the pair is reported failed")
+    min_confidence: float = Field(0.3, ge=0, le=1, description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")
     @classmethod
@@ -139,6 +146,13 @@ class EngineConfig(_Strict):
     def _candidates_range(cls, value: tuple[float, ...]) -> tuple[float, ...]:
         if not value or any(not 0.0 < v <= 1.0 for v in value):
             raise ValueError("overlap_candidates must be a non-empty list of numbers in (0, 1]")
+        return value
+
+    @field_validator("part_regions")
+    @classmethod
+    def _part_range(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if any(not 0.0 < v < 1.0 for v in value):
+            raise ValueError("part_regions must be numbers in (0, 1)")
         return value
 
     @field_validator("scale_bounds")

@@ -227,49 +227,163 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
                       alternatives=tuple(seen))
 
 
-def _refinement_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator
-                      ) -> tuple[np.ndarray, np.ndarray, cKDTree]:
-    """A finer working cloud for the refinement (precision needs more points than the search)."""
-    pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
-    return pts, estimate_normals(pts, cfg.preprocess.normal_neighbours), cKDTree(pts)
+@dataclass(frozen=True)
+class OverlapHypothesis:
+    """Where the clouds may overlap: the diameter of the overlapping region in each cloud
+    (normalised units; 1 = the whole cloud). ``overlap`` is the ratio reported in the result."""
+
+    name: str
+    region_src: float
+    region_tgt: float
+    overlap: float
+
+    def scale_prior(self, bounds_n: tuple[float, float]) -> tuple[float, float]:
+        """Normalised scales this hypothesis allows, intersected with the configured bounds.
+
+        Equal regions (a shared fraction r of each cloud, region sqrt(r)) allow any scale between
+        region/1.5 and 1.5/region: the overlap may be a larger share of one cloud than of the
+        other. A part inside a whole expects region_tgt / region_src, within a factor 1.5.
+        """
+        if self.region_src == self.region_tgt:
+            lo, hi = self.region_src / 1.5, 1.5 / self.region_src
+        else:
+            expected = self.region_tgt / self.region_src
+            lo, hi = expected / 1.5, expected * 1.5
+        return max(bounds_n[0], lo), min(bounds_n[1], hi)
 
 
-def _refine(T_n: np.ndarray, agreement: Agreement, src_points: np.ndarray, tgt_points: np.ndarray,
-            src: _Prepared, tgt: _Prepared, cfg: EngineConfig, bounds_n: tuple[float, float],
-            rng: np.random.Generator) -> np.ndarray:
-    """Scaled ICP polish of the coarse answer on finer clouds, kept only when it agrees at least as
-    well with the data at half the inlier distance and (within 0.02) at the inlier distance: ICP can
-    drift the scale on outlier-ridden, partial clouds, and the verdict's objective exposes it."""
-    r, v = cfg.refine, cfg.verdict
-    s_pts, s_nrm, _ = _refinement_cloud(src_points, cfg, rng)
-    t_pts, t_nrm, t_tree = _refinement_cloud(tgt_points, cfg, rng)
-    if r.method == "point_to_plane":
-        T_r, _ = scaled_point_to_plane_icp(s_pts, t_pts, t_nrm, T_n, r.iterations, r.start_ratio, r.end_ratio,
-                                           bounds_n, t_tree, src_normals=s_nrm,
-                                           max_normal_angle_deg=v.max_normal_angle_deg)
-    else:
-        T_r, _ = trimmed_scaled_icp(s_pts, t_pts, T_n, r.iterations, r.start_ratio, r.end_ratio, bounds_n, t_tree)
-    d = cfg.inlier_distance_ratio
-    tight_before = surface_agreement(T_n, src.surface, tgt.surface, d / 2, v.max_normal_angle_deg).score
-    tight_after = surface_agreement(T_r, src.surface, tgt.surface, d / 2, v.max_normal_angle_deg).score
-    after = surface_agreement(T_r, src.surface, tgt.surface, d, v.max_normal_angle_deg).score
-    return T_r if tight_after >= tight_before and after >= agreement.score - 0.02 else T_n
+def search_plan(cfg: EngineConfig) -> list[OverlapHypothesis]:
+    """The overlap hypotheses the engine tries, in order: equal shares of both clouds (the
+    paper's overlap search, ``overlap_candidates``), then one cloud as a part of the other
+    (``part_regions``: the part's diameter relative to the whole)."""
+    overlaps = cfg.overlap_candidates if cfg.overlap == "auto" else (float(cfg.overlap),)
+    plan = [OverlapHypothesis(f"overlap {r:.2f}", float(np.sqrt(r)), float(np.sqrt(r)), r) for r in overlaps]
+    if cfg.overlap == "auto":
+        for rho in cfg.part_regions:
+            plan.append(OverlapHypothesis(f"source inside target ({rho:.2f})", 1.0, rho, rho * rho))
+            plan.append(OverlapHypothesis(f"target inside source ({rho:.2f})", rho, 1.0, rho * rho))
+    return plan
 
 
-def _verdict(T_n: np.ndarray, candidates: list[_Candidate], src: _Prepared, tgt: _Prepared,
-             cfg: EngineConfig) -> Verdict:
-    """Agreement of the answer and of its best distinct rival among everything the search saw."""
+def _local_triangles(points: np.ndarray, region: float, n: int, cfg: EngineConfig,
+                     rng: np.random.Generator) -> np.ndarray:
+    """Triangles wide enough for an overlap region of diameter ``region`` and no wider than it."""
+    tri = cfg.triplets
+    max_edge = tri.max_edge_ratio * region if region < 1.0 else np.inf
+    return sample_triangles(points, n, tri.min_edge_ratio * region, rng, tri.min_angle_deg, max_edge=max_edge)
+
+
+def _build_tensor(src: _Prepared, tgt: _Prepared, hypothesis: OverlapHypothesis, prior: tuple[float, float],
+                  cfg: EngineConfig, rng: np.random.Generator) -> SparseTensor3:
+    """Third-order tensor of one overlap hypothesis: its own local triangles on both sides, matched
+    in descriptor space; matches whose perimeter ratio (the scale they imply) the prior rules out
+    are dropped before the power iteration."""
+    tri, w = cfg.triplets, cfg.tensor.normal_weight
+    S, Q = src.salient, tgt.salient
+    src_tri = _local_triangles(S, hypothesis.region_src, tri.n_source, cfg, rng)
+    tgt_tri = with_ambiguous_permutations(Q, _local_triangles(Q, hypothesis.region_tgt, tri.n_target, cfg, rng))
+    H3 = build_third_order(len(S), src_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
+                           len(Q), tgt_tri, triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w),
+                           cfg.tensor.knn, cfg.tensor.sigma)
+    if not cfg.tensor.scale_filter or len(H3.values) == 0:
+        return H3
+    n2 = len(Q)
+    src_perimeter = _edges(S, H3.a // n2, H3.b // n2, H3.c // n2)[1]
+    tgt_perimeter = _edges(Q, H3.a % n2, H3.b % n2, H3.c % n2)[1]
+    implied = tgt_perimeter / np.maximum(src_perimeter, 1e-12)
+    return subset(H3, (implied >= prior[0] / 1.2) & (implied <= prior[1] * 1.2))
+
+
+@dataclass(frozen=True)
+class _Fine:
+    """A finer working cloud for the refinement and the final verdict (precision needs more points
+    than the search)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+    surface: Surface
+
+    @classmethod
+    def build(cls, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> "_Fine":
+        pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
+        normals = estimate_normals(pts, cfg.preprocess.normal_neighbours)
+        tree = cKDTree(pts)
+        return cls(pts, normals, tree, Surface.build(pts, normals, tree, cfg.verdict.sample_points))
+
+
+def _tight_agreement(T: np.ndarray, src_fine: _Fine, tgt_fine: _Fine, cfg: EngineConfig) -> Agreement:
+    """Surface agreement at the verdict's tight tolerances, on the fine clouds."""
     v = cfg.verdict
-    agreement = surface_agreement(T_n, src.surface, tgt.surface, cfg.inlier_distance_ratio, v.max_normal_angle_deg)
+    return surface_agreement(T, src_fine.surface, tgt_fine.surface, v.tight_distance_ratio, v.tight_normal_angle_deg)
+
+
+def _refine(T_n: np.ndarray, src_fine: _Fine, tgt_fine: _Fine, cfg: EngineConfig,
+            bounds_n: tuple[float, float]) -> tuple[np.ndarray, Agreement]:
+    """Scaled ICP polish of a coarse transform on the fine clouds, kept only when its tight surface
+    agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
+    verdict's objective exposes it). Returns the transform and its tight agreement."""
+    r, v = cfg.refine, cfg.verdict
+    before = _tight_agreement(T_n, src_fine, tgt_fine, cfg)
+    if not r.enabled:
+        return T_n, before
+    if r.method == "point_to_plane":
+        T_r, _ = scaled_point_to_plane_icp(src_fine.points, tgt_fine.points, tgt_fine.normals, T_n, r.iterations,
+                                           r.start_ratio, r.end_ratio, bounds_n, tgt_fine.tree,
+                                           src_normals=src_fine.normals, max_normal_angle_deg=v.max_normal_angle_deg)
+    else:
+        T_r, _ = trimmed_scaled_icp(src_fine.points, tgt_fine.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
+                                    bounds_n, tgt_fine.tree)
+    after = _tight_agreement(T_r, src_fine, tgt_fine, cfg)
+    return (T_r, after) if after.score >= before.score else (T_n, before)
+
+
+def _decide(candidates: list[_Candidate], src: _Prepared, src_fine: _Fine, tgt_fine: _Fine, cfg: EngineConfig,
+            bounds_n: tuple[float, float]) -> tuple[np.ndarray, Verdict]:
+    """Choose the answer among everything the search saw and judge it.
+
+    The search ranks transforms by their surface agreement at the inlier distance; the best few
+    *distinct* ones (each moves the source by more than ``verdict.distinct_ratio`` from the others)
+    are refined and compared at the verdict's tight tolerances, so that no transform wins by
+    precision alone. The best is the answer; the confidence weighs its tight agreement against the
+    best distinct rival's.
+    """
+    v = cfg.verdict
     pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
-    rival = 0.0
-    for T_alt, a in pool:
-        if a.score > rival and displacement(T_n, T_alt, src.surface.sample) > v.distinct_ratio:
-            rival = a.score
-    support = sum(displacement(T_n, c.transform, src.surface.sample) <= v.distinct_ratio for c in candidates)
-    conf = confidence(agreement.score, rival, v.full_agreement)
-    return Verdict(confidence=conf, score=agreement.score, rival_score=rival, agreement=agreement,
-                   support=support / max(len(candidates), 1))
+    pool.sort(key=lambda item: -item[1].score)
+    sample = src.surface.sample
+
+    def distinct(T1: np.ndarray, T2: np.ndarray) -> bool:
+        return displacement(T1, T2, sample) > v.distinct_ratio
+
+    finalists: list[np.ndarray] = []
+    for T, _ in pool:
+        if all(distinct(T, F) for F in finalists):
+            finalists.append(T)
+            if len(finalists) == v.refined_finalists:
+                break
+    refined = sorted((_refine(T, src_fine, tgt_fine, cfg, bounds_n) for T in finalists), key=lambda x: -x[1].score)
+    T_answer, agreement = refined[0]
+    # Rivals: the other refined finalists, and (unrefined, so at a disadvantage) the best of the
+    # rest of the pool — finalists can converge onto the answer when refined.
+    others = [(T, a) for T, a in refined[1:]]
+    unrefined = [T for T, _ in pool if distinct(T, T_answer)][:v.rival_pool]
+    others += [(T, _tight_agreement(T, src_fine, tgt_fine, cfg)) for T in unrefined]
+    rival_score = max([a.score for T, a in others if distinct(T, T_answer)], default=0.0)
+    support = sum(not distinct(T_answer, c.transform) for c in candidates)
+    conf = confidence(agreement.score, rival_score, v.full_margin)
+    return T_answer, Verdict(confidence=conf, score=agreement.score, rival_score=rival_score, agreement=agreement,
+                             support=support / max(len(candidates), 1))
+
+
+def _refusal(verdict: Verdict, cfg: EngineConfig) -> str:
+    """Why an answer below the confidence threshold is refused, in words."""
+    scores = f"agreement {verdict.score:.2f} vs {verdict.rival_score:.2f}"
+    if verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score:
+        return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
+                f"confidence {verdict.confidence:.2f}, threshold {cfg.min_confidence:.2f})")
+    return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment "
+            f"explains little more of the data than a distinct alternative ({scores})")
 
 
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
@@ -300,10 +414,9 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     except DegenerateCloudError as err:
         return _failed(str(err), seed, start, timer.timings)
 
-    overlaps = cfg.overlap_candidates if cfg.overlap == "auto" else (float(cfg.overlap),)
+    plan = search_plan(cfg)
     root = np.random.SeedSequence(seed)
-    rng_src, rng_tgt, rng_pool, rng_refine, *rng_overlaps = [np.random.default_rng(s)
-                                                             for s in root.spawn(4 + len(overlaps))]
+    rng_src, rng_tgt, rng_refine, *rng_overlaps = [np.random.default_rng(s) for s in root.spawn(3 + len(plan))]
     ns, nt = normalise(src_raw), normalise(tgt_raw)
     src = _prepare(ns.points, cfg, rng_src, timer)
     tgt = _prepare(nt.points, cfg, rng_tgt, timer)
@@ -317,46 +430,21 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     ratio = ns.size / nt.size
     bounds_n = (lo * ratio, hi * ratio)
 
-    t = time.perf_counter()
-    tri = cfg.triplets
-    S, Q = src.salient, tgt.salient
-    min_edge = tri.min_edge_ratio * float(np.sqrt(min(overlaps)))
-    src_tri = sample_triangles(S, tri.n_source, min_edge, rng_pool, tri.min_angle_deg)
-    tgt_tri = sample_triangles(Q, tri.n_target, min_edge, rng_pool, tri.min_angle_deg)
-    tgt_tri = with_ambiguous_permutations(Q, tgt_tri)
-    t = timer.add("triplets", t)
-    w = cfg.tensor.normal_weight
-    H3_all = build_third_order(len(S), src_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
-                               len(Q), tgt_tri, triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w),
-                               cfg.tensor.knn, cfg.tensor.sigma)
-    n2 = len(Q)
-    src_edge, src_perimeter = _edges(S, H3_all.a // n2, H3_all.b // n2, H3_all.c // n2)
-    tgt_edge, tgt_perimeter = _edges(Q, H3_all.a % n2, H3_all.b % n2, H3_all.c % n2)
-    # Each triangle match implies a scale (ratio of perimeters); matches whose scale the overlap
-    # hypothesis rules out cannot be right, so they are dropped before the power iteration.
-    implied_scale = tgt_perimeter / np.maximum(src_perimeter, 1e-12)
-    timer.add("tensor", t)
-
     best: _Candidate | None = None
     candidates: list[_Candidate] = []
-    for k, overlap in enumerate(overlaps):
-        # A surface patch covering a fraction r of a cloud of (robust) diameter 1 has a diameter of
-        # about sqrt(r): wide-baseline triangles need edges of min_edge_ratio * sqrt(r).
-        region = float(np.sqrt(overlap))
-        keep = (src_edge >= tri.min_edge_ratio * region) & (tgt_edge >= tri.min_edge_ratio * region)
-        # The overlapping regions have normalised diameters between about sqrt(r) and 1 in each
-        # cloud, which bounds the normalised scale (a margin of 1.5 for crops and outliers).
-        prior = (max(bounds_n[0], region / 1.5), min(bounds_n[1], 1.5 / region))
+    for hypothesis, rng in zip(plan, rng_overlaps):
+        prior = hypothesis.scale_prior(bounds_n)
         if prior[0] >= prior[1]:
             continue
-        if cfg.tensor.scale_filter:
-            keep &= (implied_scale >= prior[0] / 1.2) & (implied_scale <= prior[1] * 1.2)
-        if keep.sum() < 3:
+        t = time.perf_counter()
+        H3 = _build_tensor(src, tgt, hypothesis, prior, cfg, rng)
+        timer.add("tensor", t)
+        if len(H3.values) < 3:
             continue
-        cand = _outer_loop(src, tgt, subset(H3_all, keep), overlap, cfg, rng_overlaps[k], prior, timer)
+        cand = _outer_loop(src, tgt, H3, hypothesis.overlap, cfg, rng, prior, timer)
         if cand is None:
             continue
-        log.debug("overlap %.2f: agreement source %.3f target %.3f, %d inliers", overlap, cand.agreement.source,
+        log.debug("%s: agreement source %.3f target %.3f, %d inliers", hypothesis.name, cand.agreement.source,
                   cand.agreement.target, cand.n_inliers)
         candidates.append(cand)
         if best is None or (cand.score, cand.n_inliers) > (best.score, best.n_inliers):
@@ -365,16 +453,13 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
                        timer.timings)
 
-    T_n = best.transform
-    if cfg.refine.enabled:
-        t = time.perf_counter()
-        T_n = _refine(T_n, best.agreement, ns.points, nt.points, src, tgt, cfg, bounds_n, rng_refine)
-        timer.add("refine", t)
-    fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
-
     t = time.perf_counter()
-    verdict = _verdict(T_n, candidates, src, tgt, cfg)
-    timer.add("verdict", t)
+    src_fine, tgt_fine = _Fine.build(ns.points, cfg, rng_refine), _Fine.build(nt.points, cfg, rng_refine)
+    T_n, verdict = _decide(candidates, src, src_fine, tgt_fine, cfg, bounds_n)
+    fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
+    # The search run that found the answer (the nearest candidate) reports inliers and overlap.
+    best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
+    timer.add("refine", t)
     T = denormalise(T_n, ns, nt)
     scale = float(np.linalg.det(T[:3, :3]) ** (1.0 / 3.0))
     rotation = T[:3, :3] / scale
@@ -386,6 +471,8 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         status, message = "failed", f"too weak evidence: fitness {fit.fitness:.3f} below {cfg.min_fitness}"
     elif not lo <= scale <= hi:
         status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
+    elif verdict.confidence < cfg.min_confidence:
+        status, message = "failed", _refusal(verdict, cfg)
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=T[:3, 3].copy(), fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,

@@ -9,9 +9,9 @@ Two measures, both on the working clouds in normalised coordinates:
   surface); proximity with agreeing normals is rare by chance. The engine ranks its candidates by
   :attr:`Agreement.score`, the mean of the two shares, which works for partial overlaps in both
   directions: a part inside a whole has a high source share and a low target share.
-* **confidence** in [0, 1]: the agreement of the answer, discounted by how close the best
-  *distinct* alternative comes (a second transform that explains the data almost as well means
-  the data do not single out one answer). See :func:`confidence`.
+* **confidence** in [0, 1]: how far the answer's agreement leads the best *distinct* alternative
+  (a second transform that explains the data almost as well means the data do not single out one
+  answer). See :func:`confidence`.
 """
 
 from __future__ import annotations
@@ -96,18 +96,14 @@ class Verdict:
     support: float  # share of the independent overlap searches that ended at the answer
 
 
-def confidence(score: float, rival_score: float, full_score: float) -> float:
+def confidence(score: float, rival_score: float, full_margin: float) -> float:
     """Confidence in [0, 1] of an answer with agreement ``score`` whose best distinct rival scores
-    ``rival_score``.
+    ``rival_score``: the answer's lead over the rival, ``(score - rival_score) / full_margin``,
+    clipped to [0, 1].
 
-    ``distinctness = 1 - rival / score`` is 0 when another transform explains the data equally
-    well and 1 when nothing else comes close; ``evidence = min(1, score / full_score)`` is how much
-    of the data agrees, relative to ``full_score``, the agreement at which the evidence counts as
-    complete. The confidence is their product: a high value needs both a well-supported answer and
-    no close rival.
+    0 means another transform explains the data as well as the answer (or better); 1 means the
+    answer explains at least ``full_margin`` more of both clouds than anything else the search
+    found. A lead rather than a ratio: on sparse, noisy or low-overlap data every agreement is
+    small, and a small answer with nothing near it is still a clear answer.
     """
-    if score <= 0:
-        return 0.0
-    distinctness = float(np.clip(1.0 - rival_score / score, 0.0, 1.0))
-    evidence = float(np.clip(score / full_score, 0.0, 1.0))
-    return distinctness * evidence
+    return float(np.clip((score - rival_score) / full_margin, 0.0, 1.0))
