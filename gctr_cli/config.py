@@ -84,6 +84,8 @@ class RansacConfig(_Strict):
 class OuterLoopConfig(_Strict):
     max_iterations: int = Field(4, ge=1, le=50)
     tol: float = Field(0.002, gt=0, description="stop when salient points move less (RMS, / diameter)")
+    settle_support: int = Field(2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
+    settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
 
 
 class RefineConfig(_Strict):
@@ -132,7 +134,7 @@ class EngineConfig(_Strict):
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
-    min_confidence: float = Field(0.3, ge=0, le=1, description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
+    min_confidence: float = Field(0.25, ge=0, le=1, description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")
     @classmethod
