@@ -257,7 +257,8 @@ def search_plan(cfg: EngineConfig) -> list[OverlapHypothesis]:
     paper's overlap search, ``overlap_candidates``), then one cloud as a part of the other
     (``part_regions``: the part's diameter relative to the whole)."""
     overlaps = cfg.overlap_candidates if cfg.overlap == "auto" else (float(cfg.overlap),)
-    plan = [OverlapHypothesis(f"overlap {r:.2f}", float(np.sqrt(r)), float(np.sqrt(r)), r) for r in overlaps]
+    plan = [OverlapHypothesis(f"overlap {r:.2f}", float(np.sqrt(r)), float(np.sqrt(r)), r)
+            for r in sorted(overlaps, reverse=True)]  # the common, cheap-to-settle cases first
     if cfg.overlap == "auto":
         for rho in cfg.part_regions:
             plan.append(OverlapHypothesis(f"source inside target ({rho:.2f})", 1.0, rho, rho * rho))
@@ -376,6 +377,18 @@ def _decide(candidates: list[_Candidate], src: _Prepared, src_fine: _Fine, tgt_f
                              support=support / max(len(candidates), 1))
 
 
+def _settled(best: _Candidate, candidates: list[_Candidate], src: _Prepared, cfg: EngineConfig) -> bool:
+    """The search can stop early when independent overlap hypotheses already ended at the same,
+    well-supported transform (``outer.settle_support`` of them, agreement at least
+    ``outer.settle_agreement``); the remaining hypotheses would only cost time."""
+    o = cfg.outer
+    if o.settle_support <= 0 or best.agreement.score < o.settle_agreement:
+        return False
+    same = sum(displacement(best.transform, c.transform, src.surface.sample) <= cfg.verdict.distinct_ratio
+               for c in candidates)
+    return same >= o.settle_support
+
+
 def _refusal(verdict: Verdict, cfg: EngineConfig) -> str:
     """Why an answer below the confidence threshold is refused, in words."""
     scores = f"agreement {verdict.score:.2f} vs {verdict.rival_score:.2f}"
@@ -449,6 +462,9 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         candidates.append(cand)
         if best is None or (cand.score, cand.n_inliers) > (best.score, best.n_inliers):
             best = cand
+        if _settled(best, candidates, src, cfg):
+            log.debug("settled after %d of %d overlap hypotheses", len(candidates), len(plan))
+            break
     if best is None:
         return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
                        timer.timings)
