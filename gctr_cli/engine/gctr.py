@@ -392,11 +392,13 @@ def _settled(best: _Candidate, candidates: list[_Candidate], src: _Prepared, cfg
 def _refusal(verdict: Verdict, cfg: EngineConfig) -> str:
     """Why an answer below the confidence threshold is refused, in words."""
     scores = f"agreement {verdict.score:.2f} vs {verdict.rival_score:.2f}"
+    lead = verdict.score - verdict.rival_score
     if verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score:
         return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
                 f"confidence {verdict.confidence:.2f}, threshold {cfg.min_confidence:.2f})")
-    return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment "
-            f"explains little more of the data than a distinct alternative ({scores})")
+    return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment puts "
+            f"{100 * verdict.score:.0f}% of the points on the other surface, only {100 * lead:.0f} points more "
+            f"than a distinct alternative ({scores})")
 
 
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
@@ -405,7 +407,8 @@ def _failed(message: str, seed: int, start: float, timings: dict[str, float],
     s = float(abs(np.linalg.det(T[:3, :3])) ** (1 / 3)) or 1.0
     return RegistrationResult(transform=T, scale=s, rotation=T[:3, :3] / s, translation=T[:3, 3].copy(),
                               fitness=0.0, inlier_rmse=float("nan"), n_inliers=0, iterations=0, status="failed",
-                              message=message, runtime_s=time.perf_counter() - start, seed=seed, timings=timings)
+                              message=message, runtime_s=time.perf_counter() - start, seed=seed, confidence=0.0,
+                              timings=timings)
 
 
 def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None = None, seed: int = 0, *,
