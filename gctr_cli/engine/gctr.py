@@ -1,26 +1,31 @@
 """GCTR — geometric constraint tensor-based registration: the pipeline that composes the stages.
 
 ``register(source, target, config, seed)`` → :class:`RegistrationResult` with the similarity that
-maps the source onto the target, in the original coordinates of the inputs.
+maps the source onto the target, in the original coordinates of the inputs, and a ``confidence``.
 
-Pipeline (paper, Algorithm 1):
+Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
 
 1. validate both clouds, normalise each (robust centre at the origin, robust diameter 1 — the
    relative scale is unknown, so every length in the config is relative), voxel-downsample early;
 2. supervoxel centroids (VCCS-like) are the salient points;
-3. random wide-baseline triangles on both sides (drawn once per pair with the smallest overlap's
-   edge limit), described by the cosines of their inner angles (+ optional vertex-normal terms),
-   matched by k nearest neighbours in descriptor space into one sparse third-order tensor;
-4. for each candidate overlap ratio r (``overlap: auto`` searches 0.25/0.5/0.75/1.0) the tensor
-   entries whose triangles are wide enough for r are kept, and the outer loop runs: first-order
-   term under the current transform → tensor power iteration → RANSAC over minimal samples from
-   the best-supported triangle matches and the soft assignment → dense verification of the best
-   hypotheses → closed-form similarity (SVD; Umeyama or edge-ratio scale) — until the salient
-   points stop moving;
-5. the overlap whose result has the best symmetric fitness wins; an optional scaled ICP
-   (point-to-plane by default) polishes it on the working clouds;
+3. overlap hypotheses (:func:`search_plan`): equal shares r of both clouds (the paper's search over
+   0.25/0.5/0.75/1.0) and one cloud as a part of the other. Each hypothesis draws its own random
+   wide-baseline triangles, *local* to an overlap region of its size, describes them by the cosines
+   of their inner angles (+ optional vertex-normal terms), and matches them by k nearest neighbours
+   in descriptor space into a sparse third-order tensor (matches whose implied scale the hypothesis
+   rules out are dropped);
+4. per hypothesis, the outer loop: first-order term under the current transform → tensor power
+   iteration → RANSAC over minimal samples from the best-supported triangle matches and the soft
+   assignment → surface-agreement verification of the best hypotheses → closed-form similarity
+   (SVD; Umeyama or edge-ratio scale) — until the salient points stop moving. The search stops
+   early once two hypotheses settle on the same well-supported transform;
+5. verdict (:mod:`gctr_cli.engine.verdict`): the best few *distinct* transforms the search saw are
+   refined (scaled point-to-plane ICP on finer clouds) and compared by surface agreement (proximity
+   with agreeing normals, both directions) at tight tolerances; the best is the answer, and the
+   confidence is its lead over the best distinct rival;
 6. the transform is composed back into the original coordinates and checked (inliers, fitness,
-   scale bounds) — weak evidence gives ``status='failed'`` rather than a silently wrong matrix.
+   scale bounds, confidence ≥ ``min_confidence``) — weak or ambiguous evidence gives
+   ``status='failed'`` with a message rather than a silently wrong matrix.
 
 All random draws come from generators spawned from ``seed``.
 """
