@@ -1,13 +1,13 @@
 """Run the pairs of a batch on a dask.distributed cluster (``gctr batch --executor dask``).
 
-An executor for :func:`gctr_cli.batch.run_batch`: it takes the ``(spec, seed)`` tasks and yields one
-:class:`~gctr_cli.batch.PairOutcome` per task as the futures complete; the batch process writes the
+An executor for :func:`gctr_cli.batch.run_batch` (see :mod:`gctr_cli.executors`): it takes the ``(spec, seed)`` tasks and yields one
+:class:`~gctr_cli.outcome.PairOutcome` per task as the futures complete; the batch process writes the
 outputs exactly as with the local pool (same files, same commit order, ``--resume``, lock).
 
 * **Cluster.** With a ``scheduler`` address (``tcp://HOST:8786``) it connects to a running cluster
   (started by hand, by dask-jobqueue on Slurm/PBS/..., by dask-kubernetes, ...). Without one it starts a
   ``LocalCluster`` of ``n_workers`` processes with one thread each, which it closes at the end.
-* **Same work, same results.** Each task calls :func:`gctr_cli.batch.run_pair` with the seed derived
+* **Same work, same results.** Each task calls :func:`gctr_cli.pair.run_pair` with the seed derived
   from the config seed and the pair id, exactly as a local worker does. Native thread pools are capped
   to one thread inside every task (:func:`_single_threaded`): ``OMP_NUM_THREADS`` and friends are set
   in the worker's environment (for pools created later), ``threadpoolctl`` limits the BLAS/OpenMP
@@ -53,19 +53,11 @@ from collections import deque
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from gctr_cli.batch import (
-    THREAD_ENV_VARS,
-    BatchError,
-    PairOutcome,
-    _default_register,
-    _exc_message,
-    _failed,
-    _limit_native_threads,
-    _resolve_ref,
-    _with_warnings,
-    run_pair,
-)
 from gctr_cli.config import Config
+from gctr_cli.errors import BatchError, ExecutorLost
+from gctr_cli.fsutil import THREAD_ENV_VARS
+from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
+from gctr_cli.pair import limit_native_threads, resolve_register_fn, run_pair
 
 try:  # the class must exist at import time for the plugin to pickle by reference
     from distributed.diagnostics.plugin import WorkerPlugin as _WorkerPluginBase
@@ -131,7 +123,7 @@ def _single_threaded() -> Iterator[None]:
     else:
         limits = threadpool_limits(limits=1)
     with limits:
-        _limit_native_threads()
+        limit_native_threads()
         yield
 
 
@@ -155,10 +147,7 @@ class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
         try:
             import gctr_cli.io  # noqa: F401
 
-            if self.register_ref:
-                _resolve_ref(self.register_ref)
-            else:
-                _default_register(self.config)
+            resolve_register_fn(self.register_ref, self.config)
             if self.snapshots:
                 import matplotlib.backends.backend_agg  # noqa: F401
                 import matplotlib.figure  # noqa: F401
@@ -172,7 +161,7 @@ class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
             threadpool_limits(limits=1)
         except Exception:  # noqa: BLE001
             pass
-        _limit_native_threads()
+        limit_native_threads()
 
 
 def _announce_start(topic: str | None) -> None:
@@ -200,15 +189,15 @@ def run_task(spec: Any, seed: int, config: Config, register_ref: str | None, sna
             try:
                 import gctr_cli.io  # noqa: F401
 
-                register_fn = _resolve_ref(register_ref) if register_ref else _default_register(config)
+                register_fn = resolve_register_fn(register_ref, config)
             except Exception as exc:  # noqa: BLE001
-                return _failed(spec, seed, f"worker start-up failed: {_exc_message(exc)}", "worker", 0.0)
-            _limit_native_threads()  # Open3D may have been loaded just now
+                return failed_outcome(spec, seed, f"worker start-up failed: {exc_message(exc)}", "worker", 0.0)
+            limit_native_threads()  # Open3D may have been loaded just now
             outcome = run_pair(spec, config, register_fn, seed=seed, snapshot=snapshots)
     finally:
         root.removeHandler(handler)
     if handler.records:
-        outcome = _with_warnings(outcome, handler.records)
+        outcome = with_warnings(outcome, handler.records)
     return outcome
 
 
@@ -246,13 +235,13 @@ def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
         except Exception as exc:  # noqa: BLE001 - OSError, TimeoutError, ValueError (bad address)
-            raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {_exc_message(exc)}") from None
+            raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {exc_message(exc)}") from None
         logger.info("connected to the dask scheduler at %s", scheduler)
         return client, None
     try:
         cluster = _start_local_cluster(n_workers)
     except Exception as exc:  # noqa: BLE001
-        raise BatchError(f"cannot start a dask LocalCluster: {_exc_message(exc)}") from None
+        raise BatchError(f"cannot start a dask LocalCluster: {exc_message(exc)}") from None
     try:
         client = Client(cluster, set_as_default=False)
     except BaseException:
@@ -313,9 +302,9 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
         try:
             outcome = future.result()
         except Exception as exc:  # noqa: BLE001 - e.g. the result cannot be deserialised
-            return _failed(job.spec, job.seed, f"bad result from worker: {_exc_message(exc)}", "worker", job.runtime())
+            return failed_outcome(job.spec, job.seed, f"bad result from worker: {exc_message(exc)}", "worker", job.runtime())
         if not isinstance(outcome, PairOutcome):
-            return _failed(job.spec, job.seed, f"bad result from worker: {type(outcome).__name__}", "worker",
+            return failed_outcome(job.spec, job.seed, f"bad result from worker: {type(outcome).__name__}", "worker",
                            job.runtime())
         return outcome
     if status == "error":
@@ -324,10 +313,10 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
         except Exception as err:  # noqa: BLE001
             exc = err
         if isinstance(exc, KilledWorker):
-            return _failed(job.spec, job.seed, _killed_message(exc), "worker", job.runtime())
-        return _failed(job.spec, job.seed, f"task failed on its dask worker: {_exc_message(exc)}", "worker",
+            return failed_outcome(job.spec, job.seed, _killed_message(exc), "worker", job.runtime())
+        return failed_outcome(job.spec, job.seed, f"task failed on its dask worker: {exc_message(exc)}", "worker",
                        job.runtime())
-    return _failed(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
+    return failed_outcome(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
 
 
 def _n_slots(client: Any) -> int:
@@ -385,12 +374,12 @@ def dask_outcomes(
             client.subscribe_topic(start_topic, on_start)
         except Exception as exc:  # noqa: BLE001
             logger.warning("cannot follow task starts (%s): the per-pair time limit is not enforced",
-                           _exc_message(exc))
+                           exc_message(exc))
         try:
             client.register_plugin(GctrWorkerSetup(config, register_ref, snapshots), name=PLUGIN_NAME)
         except Exception as exc:  # noqa: BLE001 - typically: gctr is not installed on the workers
             raise BatchError(
-                f"the dask workers cannot set up gctr ({_exc_message(exc)}); every worker needs the same "
+                f"the dask workers cannot set up gctr ({exc_message(exc)}); every worker needs the same "
                 f"Python environment as this machine, with gctr-cli installed ({INSTALL_HINT})"
             ) from None
         while pending or inflight:
@@ -450,7 +439,7 @@ def dask_outcomes(
                         # in the background: the nanny takes seconds to stop and respawn a busy worker
                         threading.Thread(target=_restart_worker, args=(client, job.worker, job.spec.pair_id, closing),
                                          name="gctr-restart-worker", daemon=True).start()
-                yield _failed(job.spec, job.seed, f"timed out after {time_limit_s:g} s", "timeout", runtime)
+                yield failed_outcome(job.spec, job.seed, f"timed out after {time_limit_s:g} s", "timeout", runtime)
     finally:
         for future in inflight:
             with contextlib.suppress(Exception):
@@ -502,7 +491,7 @@ def _restart_worker(client: Any, worker: str, pair_id: str, closing: threading.E
         if closing.is_set():
             return
         logger.warning("pair %s timed out; could not restart dask worker %s (%s): it keeps computing until the "
-                       "pair ends", pair_id, worker, _exc_message(exc))
+                       "pair ends", pair_id, worker, exc_message(exc))
         return
     status = result.get(worker) if isinstance(result, dict) else None
     if status not in (None, "OK"):
