@@ -30,8 +30,10 @@ outputs exactly as with the local pool (same files, same commit order, ``--resum
   cannot be stopped otherwise): killed at once in our own LocalCluster (its nanny starts a fresh one),
   restarted through its nanny on an external cluster. A worker without a nanny keeps computing until
   the pair ends.
-* **Lost scheduler.** If the connection to the scheduler is lost, the batch stops with a
-  :class:`~gctr_cli.batch.BatchError`; the finished pairs are saved and ``--resume`` continues.
+* **Lost scheduler.** If the connection to the scheduler is lost (the scheduler process died, the
+  network went away), the batch stops with :class:`~gctr_cli.errors.ExecutorLost` (one line from the
+  CLI, exit 2); the pairs in flight get no row, the finished pairs are saved and ``--resume`` against
+  a running scheduler finishes with the same transforms.
 
 Input paths in the manifest are resolved to absolute paths by the client (relative ones against the
 manifest's folder) and must be readable at those same paths on every worker (shared filesystem). The
@@ -77,6 +79,8 @@ MAX_RESUBMITS = 2
 CONNECT_TIMEOUT_S = 30.0
 #: the loop wakes up at least this often (new workers, time limits, lost scheduler)
 POLL_S = 0.5
+#: seconds between two looks at the cluster's number of worker threads (adaptive clusters grow)
+SLOTS_REFRESH_S = 2.0
 #: seconds given to a nanny to restart a worker whose pair timed out
 RESTART_TIMEOUT_S = 60.0
 
@@ -327,13 +331,20 @@ def _n_slots(client: Any) -> int:
         return 1
 
 
-def _check_connected(client: Any, scheduler: str | None) -> None:
-    if client.status not in ("running", "connecting", "newly-created"):
-        where = scheduler or "the LocalCluster"
-        raise BatchError(
-            f"lost the connection to the dask scheduler ({where}, client {client.status}); the finished pairs "
-            "are saved: rerun with --resume to finish"
-        )
+def _lost(scheduler: str | None, n_running: int) -> ExecutorLost:
+    """The one-line error of a batch whose scheduler went away (the cause is chained for ``-vv``)."""
+    where = f"at {scheduler}" if scheduler else "of the LocalCluster"
+    return ExecutorLost(
+        f"lost the connection to the dask scheduler {where} ({n_running} pairs were running); the finished "
+        "pairs are saved: rerun with --resume against a running scheduler to finish"
+    )
+
+
+def _check_connected(client: Any, scheduler: str | None, n_running: int) -> None:
+    """A client that is not ``running`` lost its scheduler: its futures are cancelled, nothing can go
+    on (it would only try to reconnect, and block RPCs for the connect timeout meanwhile)."""
+    if client.status != "running":
+        raise _lost(scheduler, n_running)
 
 
 def dask_outcomes(
@@ -350,6 +361,7 @@ def dask_outcomes(
     check_available()
     from distributed import wait
 
+    quiet = _QuietDistributed()
     client, cluster = _connect(scheduler, max(1, min(n_workers, len(tasks))))
     pending: deque[tuple[Any, int]] = deque(tasks)
     inflight: dict[Any, _InFlight] = {}
@@ -359,6 +371,7 @@ def dask_outcomes(
     killed_workers: set[str] = set()  # workers gctr replaced because a pair timed out
     resubmits: dict[str, int] = {}
     n_submitted = 0
+    slots, slots_checked = 1, -math.inf
     start_topic = f"gctr-start-{run_id}"
     starts: dict[str, tuple[float, str]] = {}  # task key -> (monotonic time it started, worker)
 
@@ -383,13 +396,18 @@ def dask_outcomes(
                 f"Python environment as this machine, with gctr-cli installed ({INSTALL_HINT})"
             ) from None
         while pending or inflight:
-            _check_connected(client, scheduler)
-            slots = _n_slots(client)
+            _check_connected(client, scheduler, len(inflight))
+            if time.monotonic() >= slots_checked + SLOTS_REFRESH_S:  # an RPC: not once per pair
+                slots, slots_checked = _n_slots(client), time.monotonic()
             while pending and len(inflight) < slots:
-                spec, seed = pending.popleft()
+                spec, seed = pending[0]
                 n_submitted += 1  # unique keys, also for a resubmitted pair
-                future = client.submit(run_task, spec, seed, config, register_ref, snapshots, start_topic,
-                                       key=f"gctr-{run_id}-{n_submitted}-{spec.pair_id}", pure=False, retries=0)
+                try:
+                    future = client.submit(run_task, spec, seed, config, register_ref, snapshots, start_topic,
+                                           key=f"gctr-{run_id}-{n_submitted}-{spec.pair_id}", pure=False, retries=0)
+                except Exception as exc:  # noqa: BLE001 - the client cannot reach the scheduler
+                    raise _lost(scheduler, len(inflight)) from exc
+                pending.popleft()
                 inflight[future] = _InFlight(spec, seed)
 
             _track_starts(starts, inflight)
@@ -401,9 +419,12 @@ def dask_outcomes(
                     done, _ = wait(list(inflight), timeout=timeout, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 done = set()
+            except Exception as exc:  # noqa: BLE001 - FuturesCancelledError: scheduler-connection-lost
+                # gctr cancels only futures it no longer waits for: a cancelled one means the scheduler is gone
+                raise _lost(scheduler, len(inflight)) from exc
             for future in [f for f in inflight if f in done]:  # submission order among the finished
-                if future.status not in ("finished", "error"):
-                    _check_connected(client, scheduler)  # cancelled because the scheduler is gone?
+                if future.status == "cancelled":  # not by us (see above): the scheduler is gone or restarted
+                    raise _lost(scheduler, len(inflight))
                 job = inflight.pop(future)
                 starts.pop(future.key, None)
                 lost_on = _killed_worker_address(future)
@@ -441,6 +462,7 @@ def dask_outcomes(
                                          name="gctr-restart-worker", daemon=True).start()
                 yield failed_outcome(job.spec, job.seed, f"timed out after {time_limit_s:g} s", "timeout", runtime)
     finally:
+        quiet.close()  # a lost scheduler makes distributed log reconnection tracebacks while closing
         for future in inflight:
             with contextlib.suppress(Exception):
                 future.cancel()
@@ -452,6 +474,34 @@ def dask_outcomes(
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close(timeout=10)
+        quiet.restore()
+
+
+class _QuietDistributed:
+    """While the client shuts down, distributed's own log records stay off stderr (they are tracebacks
+    of a reconnection that no longer matters; gctr says what happened in one line), unless gctr logs at
+    DEBUG level (``-vv``)."""
+
+    NAMES = ("distributed", "tornado")
+
+    def __init__(self) -> None:
+        self.saved: dict[str, int] = {}
+
+    def close(self) -> None:
+        if logger.isEnabledFor(logging.DEBUG):
+            return
+        # dask's logging config gives some children their own level (distributed.client): set each one
+        names = [n for n in list(logging.root.manager.loggerDict)
+                 if any(n == p or n.startswith(p + ".") for p in self.NAMES)]
+        for name in set(names) | set(self.NAMES):
+            log = logging.getLogger(name)
+            self.saved[name] = log.level
+            log.setLevel(logging.CRITICAL + 1)
+
+    def restore(self) -> None:
+        for name, level in self.saved.items():
+            logging.getLogger(name).setLevel(level)
+        self.saved.clear()
 
 
 def _track_starts(starts: dict[str, tuple[float, str]], inflight: dict[Any, _InFlight]) -> None:
