@@ -228,6 +228,11 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
     return done
 
 
+def _problem(exc: BaseException) -> str:
+    """gctr's own errors name the file and the problem already; others get their type too."""
+    return str(exc) if type(exc).__module__.startswith("gctr_cli") and str(exc) else exc_message(exc)
+
+
 class Outputs:
     """The output files of a running batch; :meth:`commit` records one finished pair (see the module
     docstring for the order and what happens when writing fails)."""
@@ -253,7 +258,7 @@ class Outputs:
         except Exception as exc:  # noqa: BLE001 - one pair's outputs must never end the batch
             logger.debug("pair %s: cannot write its outputs", outcome.pair_id, exc_info=True)
             failed = failed_outcome(
-                outcome, outcome.seed, f"cannot write its outputs: {exc_message(exc)}", "output", outcome.runtime_s,
+                outcome, outcome.seed, f"cannot write its outputs: {_problem(exc)}", "output", outcome.runtime_s,
                 fitness=outcome.fitness, inlier_rmse=outcome.inlier_rmse, confidence=outcome.confidence,
             )
             try:
