@@ -90,3 +90,10 @@ def slow_register(source, target, config=None, seed=0):
     """Like :func:`register`, 0.4 s per pair (to kill a batch mid-run)."""
     time.sleep(0.4)
     return register(source, target, config, seed)
+
+
+def register_without_confidence(source, target, config=None, seed=0):
+    """Like :func:`register`, for a method that computes no confidence (NaN)."""
+    from dataclasses import replace
+
+    return replace(register(source, target, config, seed), confidence=float("nan"))
