@@ -14,8 +14,8 @@ outputs exactly as with the local pool (same files, same commit order, ``--resum
   libraries already loaded, and Open3D gets ``set_max_threads(1)``. So the transforms are identical
   to the local pool's, bit for bit, whatever the workers' own settings. LocalCluster workers also get
   the variables in their environment before they start.
-* **Bounded submission.** At most as many tasks are in flight as the cluster has worker threads (at
-  least one), so memory stays bounded for any manifest size, and workers added to an adaptive cluster
+* **Bounded submission.** At most twice as many tasks are in flight as the cluster has worker threads
+  (at least one): one running and one waiting per thread, so memory stays bounded for any manifest size, and workers added to an adaptive cluster
   are used as they join. A worker plugin (:class:`GctrWorkerSetup`) prepares every worker, also those
   that join later: one-thread native pools and the imports a pair needs, so import time does not
   count against the first pair's time limit.
@@ -79,6 +79,9 @@ MAX_RESUBMITS = 2
 CONNECT_TIMEOUT_S = 30.0
 #: the loop wakes up at least this often (new workers, time limits, lost scheduler)
 POLL_S = 0.5
+#: tasks in flight per worker thread: one running, one queued at the scheduler, so a worker starts its
+#: next pair while the batch process commits the last one (time limits count from a task's start)
+IN_FLIGHT_PER_SLOT = 2
 #: seconds between two looks at the cluster's number of worker threads (adaptive clusters grow)
 SLOTS_REFRESH_S = 2.0
 #: seconds given to a nanny to restart a worker whose pair timed out
@@ -399,7 +402,7 @@ def dask_outcomes(
             _check_connected(client, scheduler, len(inflight))
             if time.monotonic() >= slots_checked + SLOTS_REFRESH_S:  # an RPC: not once per pair
                 slots, slots_checked = _n_slots(client), time.monotonic()
-            while pending and len(inflight) < slots:
+            while pending and len(inflight) < IN_FLIGHT_PER_SLOT * slots:
                 spec, seed = pending[0]
                 n_submitted += 1  # unique keys, also for a resubmitted pair
                 try:

@@ -233,40 +233,43 @@ def pool_outcomes(
         w.kill()
         workers.remove(w)
 
+    def feed() -> Iterator[PairOutcome]:
+        """Give pending pairs to idle workers (started lazily, dead ones replaced)."""
+        while pending:
+            idle = next((w for w in workers if not w.busy), None)
+            if idle is not None and not idle.process.is_alive():  # died between pairs
+                logger.info("a worker exited between pairs (%s); starting a new one", idle.death_message())
+                retire(idle)
+                continue
+            if idle is None:
+                if len(workers) >= n_workers:
+                    break
+                idle = _Worker(ctx, config, register_ref, snapshots)
+                workers.append(idle)
+            spec, seed = pending.popleft()
+            try:
+                idle.assign(spec, seed)
+            except (BrokenPipeError, OSError):
+                # the worker died before taking the pair: retry it once on a fresh worker
+                message = idle.death_message()
+                retire(idle)
+                n = send_retries.get(spec.pair_id, 0)
+                if n < 1:
+                    send_retries[spec.pair_id] = n + 1
+                    pending.appendleft((spec, seed))
+                else:
+                    yield failed_outcome(spec, seed, message, "worker", 0.0)
+
     try:
         while pending or any(w.busy for w in workers):
-            # feed idle workers (start them lazily, replace dead ones)
-            while pending:
-                idle = next((w for w in workers if not w.busy), None)
-                if idle is not None and not idle.process.is_alive():  # died between pairs
-                    logger.info("a worker exited between pairs (%s); starting a new one", idle.death_message())
-                    retire(idle)
-                    continue
-                if idle is None:
-                    if len(workers) >= n_workers:
-                        break
-                    idle = _Worker(ctx, config, register_ref, snapshots)
-                    workers.append(idle)
-                spec, seed = pending.popleft()
-                try:
-                    idle.assign(spec, seed)
-                except (BrokenPipeError, OSError):
-                    # the worker died before taking the pair: retry it once on a fresh worker
-                    message = idle.death_message()
-                    retire(idle)
-                    n = send_retries.get(spec.pair_id, 0)
-                    if n < 1:
-                        send_retries[spec.pair_id] = n + 1
-                        pending.appendleft((spec, seed))
-                    else:
-                        yield failed_outcome(spec, seed, message, "worker", 0.0)
-
+            yield from feed()
             busy = [w for w in workers if w.busy]
             if not busy:
                 continue
             timeout = max(0.0, min(w.deadline(time_limit_s) for w in busy) - time.monotonic()) + 0.01
             _mp_wait([w.conn for w in busy] + [w.process.sentinel for w in busy], timeout=timeout)
 
+            ready: list[PairOutcome] = []
             for w in busy:
                 spec, seed = w.spec, w.seed
                 outcome: PairOutcome | None = None
@@ -284,7 +287,7 @@ def pool_outcomes(
                     broken = f"bad result from worker: {exc_message(exc)}"
                 if outcome is not None:
                     w.spec = None
-                    yield outcome
+                    ready.append(outcome)
                     continue
                 runtime = w.runtime()
                 if broken and broken != "eof":
@@ -301,6 +304,9 @@ def pool_outcomes(
                     else:
                         message = f"timed out after {time_limit_s:g} s"
                     yield failed_outcome(spec, seed, message, "timeout", runtime)
+            # the workers that finished get their next pair before the batch process commits these (fsyncs)
+            yield from feed()
+            yield from ready
     finally:
         for w in workers:
             if w.busy:
