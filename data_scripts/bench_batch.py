@@ -4,8 +4,9 @@ What it measures, per run (``gctr_cli.batch.run_batch`` in this process, like ``
 
 * **rows exactly once**: ``transforms.csv`` has one row per pair id, no more, no less;
 * **memory of the batch process** (not its workers): resident set size sampled every 0.25 s; reported
-  when 10%, 50% and 100% of the rows are written, and its peak — flat means the batch process does not
-  grow with the number of pairs (outcomes are streamed to disk, submissions are bounded);
+  before the first row and when 10%, 50% and 90% of the rows are written — flat means the batch
+  process does not grow with the number of pairs (outcomes are streamed to disk, submissions are
+  bounded) — and after the end (the summary and report.html read every row once), with its peak;
 * **per-pair overhead**: ``(wall time x workers - engine time) / pairs``, the time a worker slot spends
   on a pair outside the register call (loading two small clouds, pipes or the dask scheduler, the
   batch process's fsynced rows and matrix file), and the engine's share of the slots' time;
@@ -162,20 +163,21 @@ def run_one(pairs, outdir: Path, executor: str, workers: int, work_ms: float) ->
         "overhead_ms": (wall * workers - engine_s) / n * 1000.0,
         "engine_share": engine_s / (wall * workers),
         "rss_start": rss0, "rss_10": sampler.at_fraction(n, 0.1), "rss_50": sampler.at_fraction(n, 0.5),
+        "rss_90": sampler.at_fraction(n, 0.9),
         "rss_end": sampler.samples[-1][1], "rss_peak": max(r for _, r in sampler.samples),
     }
 
 
 def fmt_table(results: list[dict]) -> str:
     head = ("| executor | -j | pairs | engine work / pair | wall (s) | pairs/s | rows exactly once | overhead / pair "
-            "(ms) | engine share | batch RSS MiB: start, 10%, 50%, end (peak) |")
+            "(ms) | engine share | batch RSS MiB at 0, 10, 50, 90% of the rows; after summary + report (peak) |")
     lines = [head, "|" + "---|" * 10]
     for r in results:
         lines.append(
             f"| {r['executor']} | {r['workers']} | {r['pairs']:,} | {r['work_ms']:g} ms | {r['wall_s']:.1f} | "
             f"{r['pairs_per_s']:.0f} | {'yes' if r['exactly_once'] and r['all_ok'] else 'NO'} | "
             f"{r['overhead_ms']:.2f} | {100 * r['engine_share']:.0f}% | {r['rss_start']:.0f}, {r['rss_10']:.0f}, "
-            f"{r['rss_50']:.0f}, {r['rss_end']:.0f} ({r['rss_peak']:.0f}) |")
+            f"{r['rss_50']:.0f}, {r['rss_90']:.0f}; {r['rss_end']:.0f} ({r['rss_peak']:.0f}) |")
     return "\n".join(lines)
 
 

@@ -308,6 +308,8 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
     if status == "finished":
         try:
             outcome = future.result()
+        except OSError:  # CommClosedError: the result cannot be fetched, the scheduler is going away
+            raise
         except Exception as exc:  # noqa: BLE001 - e.g. the result cannot be deserialised
             return failed_outcome(job.spec, job.seed, f"bad result from worker: {exc_message(exc)}", "worker", job.runtime())
         if not isinstance(outcome, PairOutcome):
@@ -317,6 +319,8 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
     if status == "error":
         try:
             exc = future.exception()
+        except OSError:
+            raise
         except Exception as err:  # noqa: BLE001
             exc = err
         if isinstance(exc, KilledWorker):
@@ -430,8 +434,11 @@ def dask_outcomes(
                     raise _lost(scheduler, len(inflight))
                 job = inflight.pop(future)
                 starts.pop(future.key, None)
-                lost_on = _killed_worker_address(future)
-                outcome = _outcome_of(future, job)
+                try:
+                    lost_on = _killed_worker_address(future)
+                    outcome = _outcome_of(future, job)
+                except OSError as exc:  # the result or error cannot be fetched any more
+                    raise _lost(scheduler, len(inflight) + 1) from exc
                 future.release()
                 if lost_on in killed_workers and resubmits.get(job.spec.pair_id, 0) < MAX_RESUBMITS:
                     # an innocent pair that shared the worker of a timed-out one: run it again
