@@ -135,7 +135,10 @@ def run_batch(
     (``scheduler``: address of a running dask scheduler; ``None`` starts a LocalCluster).
     ``snapshots``: also write ``OUTDIR/snapshots/<pair_id>.png``. At the end ``OUTDIR/report.html``
     is written (all rows of ``transforms.csv``, including resumed ones). Raises :class:`BatchError`
-    (nothing run) when the output folder is in use or inconsistent, or the executor cannot start.
+    (nothing run) when the output folder is in use or inconsistent, or the executor cannot start; and
+    when the batch cannot go on (:class:`ExecutorLost`: the dask scheduler went away; or not even a
+    failed row can be appended to ``transforms.csv``): the finished pairs are saved, ``resume`` goes on.
+    Problems of single pairs never raise: they are failed rows.
     """
     t0 = time.monotonic()
     outdir = Path(outdir)

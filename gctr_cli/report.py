@@ -311,11 +311,12 @@ def confidence_tradeoff(rows: Sequence[dict[str, str]], errs: dict[str, dict[str
 def _tradeoff_svg(ts: Sequence[float], wrong: Sequence[int], refused: Sequence[int], n_rows: int,
                   t_run: float) -> str:
     """Inline SVG: silently wrong vs wrongly refused rows against the confidence threshold."""
-    W, H, L, R, T, B = 520, 260, 50, 14, 26, 44
+    W, H, L, R, T, B = 520, 270, 50, 14, 36, 44
     pw, ph = W - L - R, H - T - B
     t0 = ts[0]
     span = (ts[-1] - t0) or 1.0
-    y_max = max(1, n_rows)
+    y_step = max(1, math.ceil(n_rows / 4))  # whole pairs on the y axis
+    y_max = y_step * max(1, math.ceil(n_rows / y_step))
 
     def X(t: float) -> float:
         return L + (t - t0) / span * pw
@@ -331,17 +332,17 @@ def _tradeoff_svg(ts: Sequence[float], wrong: Sequence[int], refused: Sequence[i
         x = X(t)
         parts.append(f'<line x1="{x:.1f}" y1="{T}" x2="{x:.1f}" y2="{T + ph}" stroke="#e3e6ea"/>')
         parts.append(f'<text x="{x:.1f}" y="{T + ph + 15}" text-anchor="middle" font-size="10">{t:.2f}</text>')
-    for i in range(5):
-        n = y_max * i / 4
+    for n in range(0, y_max + 1, y_step):
         y = Y(n)
         parts.append(f'<line x1="{L}" y1="{y:.1f}" x2="{L + pw}" y2="{y:.1f}" stroke="#e3e6ea"/>')
-        parts.append(f'<text x="{L - 5}" y="{y + 3.5:.1f}" text-anchor="end" font-size="10">{n:.3g}</text>')
+        parts.append(f'<text x="{L - 5}" y="{y + 3.5:.1f}" text-anchor="end" font-size="10">{n}</text>')
     for values, colour, label, dy in ((wrong, "#c62828", "silently wrong (ok, not a success)", 0),
-                                      (refused, "#1f78b4", "correct but refused", 14)):
-        d = "".join(("M" if i == 0 else "L") + f"{X(t):.1f},{Y(v):.1f}" for i, (t, v) in enumerate(zip(ts, values)))
+                                      (refused, "#1f78b4", "correct but refused", 13)):
+        d = f"M{X(ts[0]):.1f},{Y(values[0]):.1f}" + "".join(  # counts: a step function of t
+            f"H{X(t):.1f}V{Y(v):.1f}" for t, v in zip(ts[1:], values[1:]))
         parts.append(f'<path class="{"wrong" if dy == 0 else "refused"}" d="{d}" fill="none" stroke="{colour}" '
                      'stroke-width="1.8"/>')
-        parts.append(f'<text x="{L + pw - 4}" y="{T - 12 + dy}" text-anchor="end" font-size="10" '
+        parts.append(f'<text x="{L + pw - 4}" y="{T - 19 + dy}" text-anchor="end" font-size="10" '
                      f'fill="{colour}">{_e(label)}</text>')
     x = X(t_run)
     parts.append(f'<line x1="{x:.1f}" y1="{T}" x2="{x:.1f}" y2="{T + ph}" stroke="#333" stroke-dasharray="5,3"/>')
