@@ -47,6 +47,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import threading
 import time
 import uuid
@@ -375,6 +376,7 @@ def dask_outcomes(
     run_id = uuid.uuid4().hex[:8]
     waiting_logged = False
     closing = threading.Event()
+    restarts: list[threading.Thread] = []  # restarts of the workers of timed-out pairs (external cluster)
     killed_workers: set[str] = set()  # workers gctr replaced because a pair timed out
     resubmits: dict[str, int] = {}
     n_submitted = 0
@@ -468,10 +470,18 @@ def dask_outcomes(
                     killed_workers.add(job.worker)
                     if not (cluster is not None and _kill_local_worker(cluster, job.worker)):
                         # in the background: the nanny takes seconds to stop and respawn a busy worker
-                        threading.Thread(target=_restart_worker, args=(client, job.worker, job.spec.pair_id, closing),
-                                         name="gctr-restart-worker", daemon=True).start()
+                        restart = threading.Thread(target=_restart_worker, name="gctr-restart-worker", daemon=True,
+                                                   args=(client, job.worker, job.spec.pair_id, closing))
+                        restart.start()
+                        restarts.append(restart)
                 yield failed_outcome(job.spec, job.seed, f"timed out after {time_limit_s:g} s", "timeout", runtime)
     finally:
+        if sys.exc_info()[0] is None and client.status == "running":
+            # a batch that ends normally lets its worker restarts finish: closing the client in the middle
+            # of one can leave the nanny without its worker (the cluster would lose a worker for good)
+            deadline = time.monotonic() + RESTART_TIMEOUT_S
+            for restart in restarts:
+                restart.join(timeout=max(0.0, deadline - time.monotonic()))
         quiet.close()  # a lost scheduler makes distributed log reconnection tracebacks while closing
         for future in inflight:
             with contextlib.suppress(Exception):
@@ -542,8 +552,8 @@ def _kill_local_worker(cluster: Any, worker: str) -> bool:
 def _restart_worker(client: Any, worker: str, pair_id: str, closing: threading.Event) -> None:
     """Stop a timed-out pair for good: restart its worker through the nanny (best effort).
 
-    Runs in a background thread; a restart still under way when the batch ends is abandoned (our own
-    LocalCluster is closed anyway; an external scheduler finishes it on its side).
+    Runs in a background thread; a batch that ends normally waits for it (at most
+    ``RESTART_TIMEOUT_S``); one that is interrupted abandons it.
     """
     try:
         result = client.restart_workers([worker], timeout=RESTART_TIMEOUT_S, raise_for_error=False)

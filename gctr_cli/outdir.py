@@ -106,8 +106,8 @@ def truncate_partial_line(path: Path) -> bool:
 class RowLog:
     """Append-only CSV: one ``write`` of a complete line, then ``fsync``, per row.
 
-    A row whose write or fsync fails is cut off again (the file ends with a complete line), so the
-    caller can record something else for the pair.
+    A row whose write or fsync fails (an exception, not an interrupt) is cut off again (the file ends
+    with a complete line), so the caller can record something else for the pair.
     """
 
     def __init__(self, path: Path, header: Sequence[str]) -> None:
@@ -128,7 +128,7 @@ class RowLog:
                 n = os.write(self.fd, view)
                 view = view[n:]
             os.fsync(self.fd)
-        except BaseException:
+        except Exception:  # not on Ctrl-C/SIGTERM: a complete row stays, a torn one is cut on --resume
             self.truncate(before)
             raise
 
@@ -290,7 +290,7 @@ class Outputs:
             if errors_row is not None:
                 self.errors.append(errors_row)
             self.transforms.append(transforms_row)  # the commit
-        except BaseException:
+        except Exception:  # (an interrupt leaves what was written: --resume repairs or overwrites it)
             self.errors.truncate(errors_size)
             if outcome.transform is not None:
                 try:
