@@ -94,6 +94,11 @@ def _fmt_num(x: float | None, spec: str = ".6g") -> str:
     return "n/a" if x is None else format(x, spec)
 
 
+def _fmt_confidence(x: float | None) -> str:
+    """The engine's confidence; "n/a" when the method does not compute one (NaN)."""
+    return "n/a" if x is None or x != x else format(x, ".6g")
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, handled like Ctrl-C."""
 
@@ -171,8 +176,8 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     """Register SOURCE onto TARGET and print the similarity transform.
 
     Prints the 4x4 matrix (full precision, same format as the matrix files), the scale, fitness
-    (fraction of source points with a target point within the inlier distance), inlier RMSE, status
-    and runtime; with --gt also the rotation/translation/scale/TM errors and success. BLAS/OpenMP
+    (fraction of source points with a target point within the inlier distance), the engine's
+    confidence (n/a for methods without one), inlier RMSE, status and runtime; with --gt also the rotation/translation/scale/TM errors and success. BLAS/OpenMP
     run single-threaded as in batch workers (set OMP_NUM_THREADS etc. to override).
 
     \b
@@ -185,12 +190,12 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     if aligned is not None:
         _check_output_cloud(aligned)
     config = _load_config(config_path)
-    from gctr_cli import batch
     from gctr_cli.io import MatrixError, format_matrix, write_matrix
     from gctr_cli.manifest import PairSpec
+    from gctr_cli.pair import run_pair  # the single-pair path only: no batch machinery
 
     spec = PairSpec(pair_id=source.stem, source=source, target=target, gt=gt)
-    outcome = batch.run_pair(spec, config, seed=config.seed if seed is None else seed)
+    outcome = run_pair(spec, config, seed=config.seed if seed is None else seed)
     if outcome.failure in ("input", "ground_truth"):
         _die(outcome.message)
 
@@ -203,6 +208,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         echo(format_matrix(outcome.transform), nl=False)
         echo(f"scale: {outcome.scale!r}")
     echo(f"fitness: {_fmt_num(outcome.fitness)}")
+    echo(f"confidence: {_fmt_confidence(outcome.confidence)}")
     echo(f"inlier_rmse: {_fmt_num(outcome.inlier_rmse)}")
     echo(f"runtime_s: {outcome.runtime_s:.3f}")
     echo(f"seed: {outcome.seed}")
@@ -405,6 +411,8 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
                 executor=executor, scheduler=scheduler, snapshots=snapshots,
             )
     except batch_mod.BatchError as exc:
+        # one clear line; the cause's traceback (e.g. from distributed) only under -vv
+        logger.debug("the batch stopped", exc_info=True)
         _die(str(exc))
     except KeyboardInterrupt as exc:
         if bar is not None:

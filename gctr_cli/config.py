@@ -303,3 +303,13 @@ def config_to_yaml(config: Config) -> str:
     """Serialise a resolved config (all defaults filled in) as YAML."""
     data = config.model_dump(mode="json")
     return yaml.safe_dump(data, sort_keys=False)
+
+
+def flatten_dict(data: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mapping -> ``{"a.b.c": value}`` (used to compare and fingerprint configs)."""
+    if isinstance(data, dict):
+        out: dict[str, Any] = {}
+        for k, v in data.items():
+            out.update(flatten_dict(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: data}

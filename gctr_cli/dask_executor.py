@@ -1,21 +1,21 @@
 """Run the pairs of a batch on a dask.distributed cluster (``gctr batch --executor dask``).
 
-An executor for :func:`gctr_cli.batch.run_batch`: it takes the ``(spec, seed)`` tasks and yields one
-:class:`~gctr_cli.batch.PairOutcome` per task as the futures complete; the batch process writes the
+An executor for :func:`gctr_cli.batch.run_batch` (see :mod:`gctr_cli.executors`): it takes the ``(spec, seed)`` tasks and yields one
+:class:`~gctr_cli.outcome.PairOutcome` per task as the futures complete; the batch process writes the
 outputs exactly as with the local pool (same files, same commit order, ``--resume``, lock).
 
 * **Cluster.** With a ``scheduler`` address (``tcp://HOST:8786``) it connects to a running cluster
   (started by hand, by dask-jobqueue on Slurm/PBS/..., by dask-kubernetes, ...). Without one it starts a
   ``LocalCluster`` of ``n_workers`` processes with one thread each, which it closes at the end.
-* **Same work, same results.** Each task calls :func:`gctr_cli.batch.run_pair` with the seed derived
+* **Same work, same results.** Each task calls :func:`gctr_cli.pair.run_pair` with the seed derived
   from the config seed and the pair id, exactly as a local worker does. Native thread pools are capped
   to one thread inside every task (:func:`_single_threaded`): ``OMP_NUM_THREADS`` and friends are set
   in the worker's environment (for pools created later), ``threadpoolctl`` limits the BLAS/OpenMP
   libraries already loaded, and Open3D gets ``set_max_threads(1)``. So the transforms are identical
   to the local pool's, bit for bit, whatever the workers' own settings. LocalCluster workers also get
   the variables in their environment before they start.
-* **Bounded submission.** At most as many tasks are in flight as the cluster has worker threads (at
-  least one), so memory stays bounded for any manifest size, and workers added to an adaptive cluster
+* **Bounded submission.** At most twice as many tasks are in flight as the cluster has worker threads
+  (at least one): one running and one waiting per thread, so memory stays bounded for any manifest size, and workers added to an adaptive cluster
   are used as they join. A worker plugin (:class:`GctrWorkerSetup`) prepares every worker, also those
   that join later: one-thread native pools and the imports a pair needs, so import time does not
   count against the first pair's time limit.
@@ -30,8 +30,10 @@ outputs exactly as with the local pool (same files, same commit order, ``--resum
   cannot be stopped otherwise): killed at once in our own LocalCluster (its nanny starts a fresh one),
   restarted through its nanny on an external cluster. A worker without a nanny keeps computing until
   the pair ends.
-* **Lost scheduler.** If the connection to the scheduler is lost, the batch stops with a
-  :class:`~gctr_cli.batch.BatchError`; the finished pairs are saved and ``--resume`` continues.
+* **Lost scheduler.** If the connection to the scheduler is lost (the scheduler process died, the
+  network went away), the batch stops with :class:`~gctr_cli.errors.ExecutorLost` (one line from the
+  CLI, exit 2); the pairs in flight get no row, the finished pairs are saved and ``--resume`` against
+  a running scheduler finishes with the same transforms.
 
 Input paths in the manifest are resolved to absolute paths by the client (relative ones against the
 manifest's folder) and must be readable at those same paths on every worker (shared filesystem). The
@@ -45,6 +47,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import threading
 import time
 import uuid
@@ -53,19 +56,11 @@ from collections import deque
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from gctr_cli.batch import (
-    THREAD_ENV_VARS,
-    BatchError,
-    PairOutcome,
-    _default_register,
-    _exc_message,
-    _failed,
-    _limit_native_threads,
-    _resolve_ref,
-    _with_warnings,
-    run_pair,
-)
 from gctr_cli.config import Config
+from gctr_cli.errors import BatchError, ExecutorLost
+from gctr_cli.fsutil import THREAD_ENV_VARS
+from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
+from gctr_cli.pair import limit_native_threads, resolve_register_fn, run_pair
 
 try:  # the class must exist at import time for the plugin to pickle by reference
     from distributed.diagnostics.plugin import WorkerPlugin as _WorkerPluginBase
@@ -85,6 +80,11 @@ MAX_RESUBMITS = 2
 CONNECT_TIMEOUT_S = 30.0
 #: the loop wakes up at least this often (new workers, time limits, lost scheduler)
 POLL_S = 0.5
+#: tasks in flight per worker thread: one running, one queued at the scheduler, so a worker starts its
+#: next pair while the batch process commits the last one (time limits count from a task's start)
+IN_FLIGHT_PER_SLOT = 2
+#: seconds between two looks at the cluster's number of worker threads (adaptive clusters grow)
+SLOTS_REFRESH_S = 2.0
 #: seconds given to a nanny to restart a worker whose pair timed out
 RESTART_TIMEOUT_S = 60.0
 
@@ -131,7 +131,7 @@ def _single_threaded() -> Iterator[None]:
     else:
         limits = threadpool_limits(limits=1)
     with limits:
-        _limit_native_threads()
+        limit_native_threads()
         yield
 
 
@@ -155,10 +155,7 @@ class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
         try:
             import gctr_cli.io  # noqa: F401
 
-            if self.register_ref:
-                _resolve_ref(self.register_ref)
-            else:
-                _default_register(self.config)
+            resolve_register_fn(self.register_ref, self.config)
             if self.snapshots:
                 import matplotlib.backends.backend_agg  # noqa: F401
                 import matplotlib.figure  # noqa: F401
@@ -172,7 +169,7 @@ class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
             threadpool_limits(limits=1)
         except Exception:  # noqa: BLE001
             pass
-        _limit_native_threads()
+        limit_native_threads()
 
 
 def _announce_start(topic: str | None) -> None:
@@ -200,15 +197,15 @@ def run_task(spec: Any, seed: int, config: Config, register_ref: str | None, sna
             try:
                 import gctr_cli.io  # noqa: F401
 
-                register_fn = _resolve_ref(register_ref) if register_ref else _default_register(config)
+                register_fn = resolve_register_fn(register_ref, config)
             except Exception as exc:  # noqa: BLE001
-                return _failed(spec, seed, f"worker start-up failed: {_exc_message(exc)}", "worker", 0.0)
-            _limit_native_threads()  # Open3D may have been loaded just now
+                return failed_outcome(spec, seed, f"worker start-up failed: {exc_message(exc)}", "worker", 0.0)
+            limit_native_threads()  # Open3D may have been loaded just now
             outcome = run_pair(spec, config, register_fn, seed=seed, snapshot=snapshots)
     finally:
         root.removeHandler(handler)
     if handler.records:
-        outcome = _with_warnings(outcome, handler.records)
+        outcome = with_warnings(outcome, handler.records)
     return outcome
 
 
@@ -246,13 +243,13 @@ def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
         except Exception as exc:  # noqa: BLE001 - OSError, TimeoutError, ValueError (bad address)
-            raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {_exc_message(exc)}") from None
+            raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {exc_message(exc)}") from None
         logger.info("connected to the dask scheduler at %s", scheduler)
         return client, None
     try:
         cluster = _start_local_cluster(n_workers)
     except Exception as exc:  # noqa: BLE001
-        raise BatchError(f"cannot start a dask LocalCluster: {_exc_message(exc)}") from None
+        raise BatchError(f"cannot start a dask LocalCluster: {exc_message(exc)}") from None
     try:
         client = Client(cluster, set_as_default=False)
     except BaseException:
@@ -312,22 +309,26 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
     if status == "finished":
         try:
             outcome = future.result()
+        except OSError:  # CommClosedError: the result cannot be fetched, the scheduler is going away
+            raise
         except Exception as exc:  # noqa: BLE001 - e.g. the result cannot be deserialised
-            return _failed(job.spec, job.seed, f"bad result from worker: {_exc_message(exc)}", "worker", job.runtime())
+            return failed_outcome(job.spec, job.seed, f"bad result from worker: {exc_message(exc)}", "worker", job.runtime())
         if not isinstance(outcome, PairOutcome):
-            return _failed(job.spec, job.seed, f"bad result from worker: {type(outcome).__name__}", "worker",
+            return failed_outcome(job.spec, job.seed, f"bad result from worker: {type(outcome).__name__}", "worker",
                            job.runtime())
         return outcome
     if status == "error":
         try:
             exc = future.exception()
+        except OSError:
+            raise
         except Exception as err:  # noqa: BLE001
             exc = err
         if isinstance(exc, KilledWorker):
-            return _failed(job.spec, job.seed, _killed_message(exc), "worker", job.runtime())
-        return _failed(job.spec, job.seed, f"task failed on its dask worker: {_exc_message(exc)}", "worker",
+            return failed_outcome(job.spec, job.seed, _killed_message(exc), "worker", job.runtime())
+        return failed_outcome(job.spec, job.seed, f"task failed on its dask worker: {exc_message(exc)}", "worker",
                        job.runtime())
-    return _failed(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
+    return failed_outcome(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
 
 
 def _n_slots(client: Any) -> int:
@@ -338,13 +339,20 @@ def _n_slots(client: Any) -> int:
         return 1
 
 
-def _check_connected(client: Any, scheduler: str | None) -> None:
-    if client.status not in ("running", "connecting", "newly-created"):
-        where = scheduler or "the LocalCluster"
-        raise BatchError(
-            f"lost the connection to the dask scheduler ({where}, client {client.status}); the finished pairs "
-            "are saved: rerun with --resume to finish"
-        )
+def _lost(scheduler: str | None, n_running: int) -> ExecutorLost:
+    """The one-line error of a batch whose scheduler went away (the cause is chained for ``-vv``)."""
+    where = f"at {scheduler}" if scheduler else "of the LocalCluster"
+    return ExecutorLost(
+        f"lost the connection to the dask scheduler {where} ({n_running} pairs were running); the finished "
+        "pairs are saved: rerun with --resume against a running scheduler to finish"
+    )
+
+
+def _check_connected(client: Any, scheduler: str | None, n_running: int) -> None:
+    """A client that is not ``running`` lost its scheduler: its futures are cancelled, nothing can go
+    on (it would only try to reconnect, and block RPCs for the connect timeout meanwhile)."""
+    if client.status != "running":
+        raise _lost(scheduler, n_running)
 
 
 def dask_outcomes(
@@ -361,15 +369,18 @@ def dask_outcomes(
     check_available()
     from distributed import wait
 
+    quiet = _QuietDistributed()
     client, cluster = _connect(scheduler, max(1, min(n_workers, len(tasks))))
     pending: deque[tuple[Any, int]] = deque(tasks)
     inflight: dict[Any, _InFlight] = {}
     run_id = uuid.uuid4().hex[:8]
     waiting_logged = False
     closing = threading.Event()
+    restarts: list[threading.Thread] = []  # restarts of the workers of timed-out pairs (external cluster)
     killed_workers: set[str] = set()  # workers gctr replaced because a pair timed out
     resubmits: dict[str, int] = {}
     n_submitted = 0
+    slots, slots_checked = 1, -math.inf
     start_topic = f"gctr-start-{run_id}"
     starts: dict[str, tuple[float, str]] = {}  # task key -> (monotonic time it started, worker)
 
@@ -385,22 +396,27 @@ def dask_outcomes(
             client.subscribe_topic(start_topic, on_start)
         except Exception as exc:  # noqa: BLE001
             logger.warning("cannot follow task starts (%s): the per-pair time limit is not enforced",
-                           _exc_message(exc))
+                           exc_message(exc))
         try:
             client.register_plugin(GctrWorkerSetup(config, register_ref, snapshots), name=PLUGIN_NAME)
         except Exception as exc:  # noqa: BLE001 - typically: gctr is not installed on the workers
             raise BatchError(
-                f"the dask workers cannot set up gctr ({_exc_message(exc)}); every worker needs the same "
+                f"the dask workers cannot set up gctr ({exc_message(exc)}); every worker needs the same "
                 f"Python environment as this machine, with gctr-cli installed ({INSTALL_HINT})"
             ) from None
         while pending or inflight:
-            _check_connected(client, scheduler)
-            slots = _n_slots(client)
-            while pending and len(inflight) < slots:
-                spec, seed = pending.popleft()
+            _check_connected(client, scheduler, len(inflight))
+            if time.monotonic() >= slots_checked + SLOTS_REFRESH_S:  # an RPC: not once per pair
+                slots, slots_checked = _n_slots(client), time.monotonic()
+            while pending and len(inflight) < IN_FLIGHT_PER_SLOT * slots:
+                spec, seed = pending[0]
                 n_submitted += 1  # unique keys, also for a resubmitted pair
-                future = client.submit(run_task, spec, seed, config, register_ref, snapshots, start_topic,
-                                       key=f"gctr-{run_id}-{n_submitted}-{spec.pair_id}", pure=False, retries=0)
+                try:
+                    future = client.submit(run_task, spec, seed, config, register_ref, snapshots, start_topic,
+                                           key=f"gctr-{run_id}-{n_submitted}-{spec.pair_id}", pure=False, retries=0)
+                except Exception as exc:  # noqa: BLE001 - the client cannot reach the scheduler
+                    raise _lost(scheduler, len(inflight)) from exc
+                pending.popleft()
                 inflight[future] = _InFlight(spec, seed)
 
             _track_starts(starts, inflight)
@@ -412,13 +428,19 @@ def dask_outcomes(
                     done, _ = wait(list(inflight), timeout=timeout, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 done = set()
+            except Exception as exc:  # noqa: BLE001 - FuturesCancelledError: scheduler-connection-lost
+                # gctr cancels only futures it no longer waits for: a cancelled one means the scheduler is gone
+                raise _lost(scheduler, len(inflight)) from exc
             for future in [f for f in inflight if f in done]:  # submission order among the finished
-                if future.status not in ("finished", "error"):
-                    _check_connected(client, scheduler)  # cancelled because the scheduler is gone?
+                if future.status == "cancelled":  # not by us (see above): the scheduler is gone or restarted
+                    raise _lost(scheduler, len(inflight))
                 job = inflight.pop(future)
                 starts.pop(future.key, None)
-                lost_on = _killed_worker_address(future)
-                outcome = _outcome_of(future, job)
+                try:
+                    lost_on = _killed_worker_address(future)
+                    outcome = _outcome_of(future, job)
+                except OSError as exc:  # the result or error cannot be fetched any more
+                    raise _lost(scheduler, len(inflight) + 1) from exc
                 future.release()
                 if lost_on in killed_workers and resubmits.get(job.spec.pair_id, 0) < MAX_RESUBMITS:
                     # an innocent pair that shared the worker of a timed-out one: run it again
@@ -448,10 +470,19 @@ def dask_outcomes(
                     killed_workers.add(job.worker)
                     if not (cluster is not None and _kill_local_worker(cluster, job.worker)):
                         # in the background: the nanny takes seconds to stop and respawn a busy worker
-                        threading.Thread(target=_restart_worker, args=(client, job.worker, job.spec.pair_id, closing),
-                                         name="gctr-restart-worker", daemon=True).start()
-                yield _failed(job.spec, job.seed, f"timed out after {time_limit_s:g} s", "timeout", runtime)
+                        restart = threading.Thread(target=_restart_worker, name="gctr-restart-worker", daemon=True,
+                                                   args=(client, job.worker, job.spec.pair_id, closing))
+                        restart.start()
+                        restarts.append(restart)
+                yield failed_outcome(job.spec, job.seed, f"timed out after {time_limit_s:g} s", "timeout", runtime)
     finally:
+        if sys.exc_info()[0] is None and client.status == "running":
+            # a batch that ends normally lets its worker restarts finish: closing the client in the middle
+            # of one can leave the nanny without its worker (the cluster would lose a worker for good)
+            deadline = time.monotonic() + RESTART_TIMEOUT_S
+            for restart in restarts:
+                restart.join(timeout=max(0.0, deadline - time.monotonic()))
+        quiet.close()  # a lost scheduler makes distributed log reconnection tracebacks while closing
         for future in inflight:
             with contextlib.suppress(Exception):
                 future.cancel()
@@ -463,6 +494,34 @@ def dask_outcomes(
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close(timeout=10)
+        quiet.restore()
+
+
+class _QuietDistributed:
+    """While the client shuts down, distributed's own log records stay off stderr (they are tracebacks
+    of a reconnection that no longer matters; gctr says what happened in one line), unless gctr logs at
+    DEBUG level (``-vv``)."""
+
+    NAMES = ("distributed", "tornado")
+
+    def __init__(self) -> None:
+        self.saved: dict[str, int] = {}
+
+    def close(self) -> None:
+        if logger.isEnabledFor(logging.DEBUG):
+            return
+        # dask's logging config gives some children their own level (distributed.client): set each one
+        names = [n for n in list(logging.root.manager.loggerDict)
+                 if any(n == p or n.startswith(p + ".") for p in self.NAMES)]
+        for name in set(names) | set(self.NAMES):
+            log = logging.getLogger(name)
+            self.saved[name] = log.level
+            log.setLevel(logging.CRITICAL + 1)
+
+    def restore(self) -> None:
+        for name, level in self.saved.items():
+            logging.getLogger(name).setLevel(level)
+        self.saved.clear()
 
 
 def _track_starts(starts: dict[str, tuple[float, str]], inflight: dict[Any, _InFlight]) -> None:
@@ -493,8 +552,8 @@ def _kill_local_worker(cluster: Any, worker: str) -> bool:
 def _restart_worker(client: Any, worker: str, pair_id: str, closing: threading.Event) -> None:
     """Stop a timed-out pair for good: restart its worker through the nanny (best effort).
 
-    Runs in a background thread; a restart still under way when the batch ends is abandoned (our own
-    LocalCluster is closed anyway; an external scheduler finishes it on its side).
+    Runs in a background thread; a batch that ends normally waits for it (at most
+    ``RESTART_TIMEOUT_S``); one that is interrupted abandons it.
     """
     try:
         result = client.restart_workers([worker], timeout=RESTART_TIMEOUT_S, raise_for_error=False)
@@ -502,7 +561,7 @@ def _restart_worker(client: Any, worker: str, pair_id: str, closing: threading.E
         if closing.is_set():
             return
         logger.warning("pair %s timed out; could not restart dask worker %s (%s): it keeps computing until the "
-                       "pair ends", pair_id, worker, _exc_message(exc))
+                       "pair ends", pair_id, worker, exc_message(exc))
         return
     status = result.get(worker) if isinstance(result, dict) else None
     if status not in (None, "OK"):

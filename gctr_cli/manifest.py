@@ -46,10 +46,18 @@ class PairSpec:
     gt: Path | None = None
 
 
+#: longest pair_id, in UTF-8 bytes: it names files (``matrices/<pair_id>.txt``, written through a temporary
+#: ``.<pair_id>.txt.<pid>.<8 hex>.tmp`` of up to 226 bytes), and file names are limited to 255 bytes
+MAX_PAIR_ID_BYTES = 200
+
+
 def pair_id_problem(pair_id: str) -> str | None:
     """Return why ``pair_id`` cannot be used as a file name stem, or None if it is fine."""
     if not pair_id:
         return "is empty"
+    n_bytes = len(pair_id.encode("utf-8", "surrogatepass"))
+    if n_bytes > MAX_PAIR_ID_BYTES:
+        return f"is too long ({n_bytes} bytes in UTF-8, at most {MAX_PAIR_ID_BYTES})"
     for bad, label in (("/", "'/'"), ("\\", "'\\'"), ("\x00", "NUL"), ("..", "'..'")):
         if bad in pair_id:
             return f"contains {label}"

@@ -37,6 +37,8 @@ COLUMNS: tuple[tuple[str, str, str, str], ...] = (
     ("tm_err", "TM err", "num", "Frobenius norm of T_est - T_gt"),
     ("success", "success", "text", "all errors below the success thresholds"),
     ("fitness", "fitness", "num", "fraction of source points with a target point within the inlier distance"),
+    ("confidence", "confidence", "num", "how strongly the data single out the transform (0..1); empty when the "
+     "method computes none"),
     ("scale", "scale", "num", "estimated scale s"),
     ("runtime_s", "time (s)", "num", "registration time of the pair, seconds"),
 )
@@ -283,6 +285,77 @@ def _error_plot(err_rows: Sequence[dict[str, str]], n_gt: int, thresholds: Any) 
     return "\n".join(svgs)
 
 
+def confidence_tradeoff(rows: Sequence[dict[str, str]], errs: dict[str, dict[str, str]],
+                        t_min: float, n_steps: int = 101) -> tuple[list[float], list[int], list[int], int]:
+    """What a confidence threshold ``t`` would do to the ok rows with ground truth and a confidence.
+
+    For thresholds from ``t_min`` (the run's ``engine.min_confidence``) up to 1: ``wrong[i]`` ok rows
+    that would remain silently wrong (success false, confidence >= t), ``refused[i]`` correct rows that
+    would be refused (success true, confidence < t). Returns ``(thresholds, wrong, refused, n_rows)``;
+    ``n_rows`` is 0 when no such row has a confidence (the plot is then left out). Failed rows have no
+    matrix and no errors, so thresholds below ``t_min`` cannot be evaluated.
+    """
+    pts: list[tuple[float, bool]] = []
+    for r in rows:
+        e = errs.get(r.get("pair_id", ""))
+        c = _float(r.get("confidence"))
+        if r.get("status") == "ok" and e is not None and c is not None and e.get("success") in ("true", "false"):
+            pts.append((c, e["success"] == "true"))
+    t_min = min(max(float(t_min), 0.0), 1.0)
+    ts = [t_min + (1.0 - t_min) * i / (n_steps - 1) for i in range(n_steps)] if t_min < 1.0 else [1.0]
+    wrong = [sum(1 for c, ok in pts if not ok and c >= t) for t in ts]
+    refused = [sum(1 for c, ok in pts if ok and c < t) for t in ts]
+    return ts, wrong, refused, len(pts)
+
+
+def _tradeoff_svg(ts: Sequence[float], wrong: Sequence[int], refused: Sequence[int], n_rows: int,
+                  t_run: float) -> str:
+    """Inline SVG: silently wrong vs wrongly refused rows against the confidence threshold."""
+    W, H, L, R, T, B = 520, 270, 50, 14, 36, 44
+    pw, ph = W - L - R, H - T - B
+    t0 = ts[0]
+    span = (ts[-1] - t0) or 1.0
+    y_step = max(1, math.ceil(n_rows / 4))  # whole pairs on the y axis
+    y_max = y_step * max(1, math.ceil(n_rows / y_step))
+
+    def X(t: float) -> float:
+        return L + (t - t0) / span * pw
+
+    def Y(n: float) -> float:
+        return T + (1.0 - n / y_max) * ph
+
+    parts = [f'<svg class="tradeoff" viewBox="0 0 {W} {H}" width="{W}" height="{H}" role="img" '
+             'aria-label="confidence threshold trade-off">']
+    parts.append(f'<rect x="{L}" y="{T}" width="{pw}" height="{ph}" fill="#fff" stroke="#999"/>')
+    for i in range(6):
+        t = t0 + span * i / 5
+        x = X(t)
+        parts.append(f'<line x1="{x:.1f}" y1="{T}" x2="{x:.1f}" y2="{T + ph}" stroke="#e3e6ea"/>')
+        parts.append(f'<text x="{x:.1f}" y="{T + ph + 15}" text-anchor="middle" font-size="10">{t:.2f}</text>')
+    for n in range(0, y_max + 1, y_step):
+        y = Y(n)
+        parts.append(f'<line x1="{L}" y1="{y:.1f}" x2="{L + pw}" y2="{y:.1f}" stroke="#e3e6ea"/>')
+        parts.append(f'<text x="{L - 5}" y="{y + 3.5:.1f}" text-anchor="end" font-size="10">{n}</text>')
+    for values, colour, label, dy in ((wrong, "#c62828", "silently wrong (ok, not a success)", 0),
+                                      (refused, "#1f78b4", "correct but refused", 13)):
+        d = f"M{X(ts[0]):.1f},{Y(values[0]):.1f}" + "".join(  # counts: a step function of t
+            f"H{X(t):.1f}V{Y(v):.1f}" for t, v in zip(ts[1:], values[1:]))
+        parts.append(f'<path class="{"wrong" if dy == 0 else "refused"}" d="{d}" fill="none" stroke="{colour}" '
+                     'stroke-width="1.8"/>')
+        parts.append(f'<text x="{L + pw - 4}" y="{T - 19 + dy}" text-anchor="end" font-size="10" '
+                     f'fill="{colour}">{_e(label)}</text>')
+    x = X(t_run)
+    parts.append(f'<line x1="{x:.1f}" y1="{T}" x2="{x:.1f}" y2="{T + ph}" stroke="#333" stroke-dasharray="5,3"/>')
+    parts.append(f'<text class="run-threshold" x="{x + 4:.1f}" y="{T + 12}" font-size="10">run: '
+                 f'min_confidence {t_run:g}</text>')
+    parts.append(f'<text x="{L + pw / 2:.1f}" y="{H - 6}" text-anchor="middle" font-size="11">'
+                 'confidence threshold t (refuse a pair when its confidence &lt; t)</text>')
+    parts.append(f'<text transform="translate(13,{T + ph / 2:.1f}) rotate(-90)" text-anchor="middle" '
+                 'font-size="11">pairs</text>')
+    parts.append("</svg>")
+    return "".join(parts)
+
+
 def _load_config(outdir: Path) -> Any:
     try:
         from gctr_cli.config import load_config
@@ -293,7 +366,7 @@ def _load_config(outdir: Path) -> Any:
 
 
 def _summary_from_rows(outdir: Path, rows: Sequence[dict[str, str]], err_ids: set[str]) -> Any:
-    from gctr_cli.batch import summarize
+    from gctr_cli.summary import summarize
 
     pairs = [SimpleNamespace(pair_id=r["pair_id"], gt=True if r["pair_id"] in err_ids else None) for r in rows]
     return summarize(pairs, outdir)
@@ -302,7 +375,7 @@ def _summary_from_rows(outdir: Path, rows: Sequence[dict[str, str]], err_ids: se
 def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None) -> str:
     """The HTML text of the report of ``outdir`` (see the module docstring).
 
-    ``summary`` is the run's :class:`gctr_cli.batch.BatchSummary` (default: computed from the rows,
+    ``summary`` is the run's :class:`gctr_cli.summary.BatchSummary` (default: computed from the rows,
     counting as "with ground truth" only pairs that have a ``tm_errors.csv`` row); ``config`` the run's
     config (default: ``OUTDIR/config.yaml``).
     """
@@ -375,6 +448,19 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
           "failed pairs never reach the curve; dashed: the success thresholds.</figcaption>\n"
           "</figure>\n</section>\n")
 
+    t_run = getattr(getattr(config, "engine", None), "min_confidence", None)
+    ts, wrong, refused, n_conf = confidence_tradeoff(rows, errs, t_run if t_run is not None else 0.0)
+    if n_conf:
+        t_shown = ts[0]
+        w("<section id=\"confidence\">\n<h2>Confidence threshold</h2>\n<figure>\n")
+        w(f"<div id=\"tradeoff-plot\" class=\"plots\">\n{_tradeoff_svg(ts, wrong, refused, n_conf, t_shown)}\n</div>\n")
+        w(f"<figcaption>Over the {n_conf} ok pairs with ground truth and a confidence: at threshold t, red counts "
+          f"the pairs that would still be reported ok although they are wrong (confidence &ge; t, not a success), "
+          f"blue the correct pairs that would be refused (confidence &lt; t). At the run's threshold "
+          f"{t_shown:g}: {wrong[0]} silently wrong, {refused[0]} refused. Failed rows have no matrix, so "
+          f"thresholds below the run's <code>engine.min_confidence</code> cannot be evaluated: the plot starts "
+          f"there.</figcaption>\n</figure>\n</section>\n")
+
     n_failed_rows = sum(1 for r in rows if r.get("status") != "ok")
     w("<section id=\"pairs-section\">\n<h2>Pairs</h2>\n<div class=\"controls\">\n")
     w("<label>show <select id=\"status-filter\"><option value=\"all\">all pairs</option>"
@@ -391,7 +477,8 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
         pid = r.get("pair_id", "")
         status = r.get("status", "")
         e = errs.get(pid, {}) if status == "ok" else {}
-        cells = {**{k: r.get(k, "") for k in ("pair_id", "status", "message", "fitness", "scale", "runtime_s")},
+        cells = {**{k: r.get(k, "") for k in ("pair_id", "status", "message", "fitness", "confidence", "scale",
+                                              "runtime_s")},
                  **{k: e.get(k, "") for k in ("rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "success")}}
         cls = "ok" if status == "ok" else "failed"
         w(f"<tr class=\"{cls}\" data-status=\"{_e(cls)}\" data-pair=\"{_e(pid)}\">")

@@ -28,6 +28,11 @@ EXIT_N = 79  #: the worker calls os._exit(3)
 SEED_OFFSET = 1e-7  #: relative size of the seeded translation offset
 
 
+def fake_confidence(seed: int) -> float:
+    """Deterministic confidence of an ok pair: in [0.5, 1), a function of its seed (so of the pair id)."""
+    return 0.5 + 0.5 * (seed % 997) / 997
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991) as a 4x4 matrix."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
@@ -70,6 +75,7 @@ def register(source, target, config=None, seed=0):
         rotation=T[:3, :3] / s,
         translation=T[:3, 3].copy(),
         fitness=0.875 if status == "ok" else 0.01,
+        confidence=fake_confidence(seed) if status == "ok" else 0.05,
         inlier_rmse=0.001 * diag,
         n_inliers=m,
         iterations=1,
@@ -84,3 +90,10 @@ def slow_register(source, target, config=None, seed=0):
     """Like :func:`register`, 0.4 s per pair (to kill a batch mid-run)."""
     time.sleep(0.4)
     return register(source, target, config, seed)
+
+
+def register_without_confidence(source, target, config=None, seed=0):
+    """Like :func:`register`, for a method that computes no confidence (NaN)."""
+    from dataclasses import replace
+
+    return replace(register(source, target, config, seed), confidence=float("nan"))

@@ -136,7 +136,7 @@ def test_batch_outputs_follow_the_contract(four_pairs, fast_config, tmp_path):
     assert header == list(TRANSFORMS_COLUMNS)
     assert header[:6] == ["pair_id", "source", "target", "status", "message", "scale"]
     assert header[6:22] == [f"m{i}{j}" for i in range(4) for j in range(4)]
-    assert header[22:] == ["fitness", "inlier_rmse", "runtime_s", "seed"]
+    assert header[22:] == ["fitness", "confidence", "inlier_rmse", "runtime_s", "seed"]
     rows = by_id(rows)
     assert sorted(rows) == sorted(r["pair_id"] for r in four_pairs.rows)
 
@@ -155,6 +155,7 @@ def test_batch_outputs_follow_the_contract(four_pairs, fast_config, tmp_path):
         assert np.array_equal(T_csv, T_file)  # full precision on both sides
         assert float(row["scale"]) == pytest.approx(np.cbrt(np.linalg.det(T_csv[:3, :3])), rel=1e-12)
         assert float(row["fitness"]) == 0.875
+        assert float(row["confidence"]) == fake_engine.fake_confidence(derive_seed(7, pid))  # repr: exact
         assert float(row["runtime_s"]) >= 0
         if pid in four_pairs.gt:
             target = load_point_cloud(specs[pid].target)

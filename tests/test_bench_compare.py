@@ -47,10 +47,10 @@ def make_fake_run(work: Path) -> list[bc.BatchRun]:
         for k, e in enumerate(pairs):
             pid = f"{level}_{k}"
             if e is None:
-                trows.append([pid, "s.ply", "t.ply", "failed", "too weak evidence", ""] + [""] * 16 + ["", "", "2.0", "1"])
+                trows.append([pid, "s.ply", "t.ply", "failed", "too weak evidence", ""] + [""] * 16 + ["", "", "", "2.0", "1"])
                 continue
             rot, tr, sc, t = e
-            trows.append([pid, "s.ply", "t.ply", "ok", "", "1.5"] + ["0"] * 16 + ["0.9", "0.01", repr(t), "1"])
+            trows.append([pid, "s.ply", "t.ply", "ok", "", "1.5"] + ["0"] * 16 + ["0.9", "", "0.01", repr(t), "1"])
             ok = rot < 5 and tr < 0.05 and sc < 0.05
             erows.append([pid, repr(rot), repr(tr * 10), repr(tr), repr(sc), repr(rot / 10), "true" if ok else "false"])
         _write(out / "transforms.csv", TRANSFORMS_COLUMNS, trows)

@@ -114,7 +114,9 @@ def test_report_has_every_pair_summary_and_plot(failing_set, fast_config, tmp_pa
     assert f'<div class="v">{summary.n_pairs}</div><div class="k">pairs</div>' in text
     assert '<div class="v">2</div><div class="k">failed</div>' in text
     assert f"success ({summary.n_success}/{summary.n_gt} with ground truth)" in text
-    assert "error-plot" in page.ids and text.count("<svg") == 3
+    assert "error-plot" in page.ids and text.count('<svg class="ecdf"') == 3
+    # the fake engine reports a confidence: the threshold trade-off plot is there (tests/test_report_confidence.py)
+    assert "tradeoff-plot" in page.ids and text.count("<svg") == 4
     assert "snapshots/" not in text  # no snapshots were asked for
     assert_self_contained(text, page)
     assert not list(out.glob(".report*"))  # written atomically, no temporary left

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 import fake_engine
 from conftest import PYTHON, apply, bumpy_surface, read_csv, rotation, similarity, write_cloud
-from gctr_cli import batch, cli, snapshots
+from gctr_cli import batch, cli, outcome, snapshots
 from gctr_cli.batch import run_batch, run_pair
 from gctr_cli.io import write_matrix
 from gctr_cli.snapshots import SNAPSHOT_SIZE_PX, render_snapshot
@@ -109,7 +109,7 @@ def test_a_snapshot_failure_never_fails_the_pair(four_pairs, fast_config, monkey
     assert out.ok and out.snapshot_png is None and out.message == ""
     assert "snapshot failed: RuntimeError: no fonts today" in caplog.text
     # in a worker, the warning is reported but kept out of the pair's message
-    marked = batch._with_warnings(out, [(batch.SNAPSHOT_LOGGER, "snapshot failed: x")])
+    marked = outcome.with_warnings(out, [(outcome.SNAPSHOT_LOGGER, "snapshot failed: x")])
     assert marked.message == "" and marked.warnings == ("snapshot failed: x",)
 
 

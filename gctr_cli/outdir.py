@@ -1,0 +1,312 @@
+"""The output folder of a batch: the row logs, their repair on ``--resume``, and committing one pair.
+
+Layout (README, "Outputs"): ``transforms.csv`` (one row per pair, the commit log), ``tm_errors.csv``
+(pairs with ground truth), ``matrices/<pair_id>.txt``, ``snapshots/<pair_id>.png`` (``--snapshots``),
+``config.yaml`` (the resolved config), ``report.html`` (written by :mod:`gctr_cli.batch` at the end).
+
+* **Nothing half-written.** Rows are appended with a single ``write`` of a complete line followed by
+  ``fsync`` (:class:`RowLog`); matrices go to a temporary file that is renamed. A trailing partial
+  line (left by a kill mid-write) is removed on ``--resume``.
+* **Commit order.** Per pair: matrix file, snapshot, ``tm_errors.csv`` row, then the
+  ``transforms.csv`` row (the commit). A pair is done when its ``transforms.csv`` row is there; on
+  ``--resume`` error rows without a committed pair are dropped.
+* **A pair whose outputs cannot be written does not end the batch.** Any exception while committing
+  it (a file name the filesystem refuses, a matrix path that is a folder, a full disk, ...) undoes
+  what was written for it and records it as a failed row (failure ``"output"``) naming the problem.
+  Only when even that row cannot be written does the batch stop (:class:`~gctr_cli.errors.BatchError`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _stdio
+import logging
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+from gctr_cli.config import Config, ConfigError, flatten_dict, load_config
+from gctr_cli.errors import BatchError
+from gctr_cli.fsutil import atomic_write
+from gctr_cli.outcome import ERRORS_COLUMNS, TRANSFORMS_COLUMNS, PairOutcome, exc_message, failed_outcome
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CONFIG_FILE",
+    "ERRORS_FILE",
+    "MATRICES_DIR",
+    "Outputs",
+    "REPORT_FILE",
+    "RowLog",
+    "SNAPSHOTS_DIR",
+    "TRANSFORMS_FILE",
+    "check_same_config",
+    "prepare_outdir",
+    "read_rows",
+]
+
+TRANSFORMS_FILE = "transforms.csv"
+ERRORS_FILE = "tm_errors.csv"
+MATRICES_DIR = "matrices"
+SNAPSHOTS_DIR = "snapshots"
+REPORT_FILE = "report.html"
+CONFIG_FILE = "config.yaml"
+
+
+def csv_line(fields: Iterable[str]) -> str:
+    buf = _stdio.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(list(fields))
+    return buf.getvalue()
+
+
+def fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def truncate_partial_line(path: Path) -> bool:
+    """Remove a trailing line without its final newline (left by a crash mid-write). True if cut."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return False
+    if size == 0:
+        return False
+    with open(path, "rb+") as fh:
+        fh.seek(size - 1)
+        if fh.read(1) == b"\n":
+            return False
+        pos = size
+        keep = 0
+        while pos > 0:
+            step = min(65536, pos)
+            pos -= step
+            fh.seek(pos)
+            chunk = fh.read(step)
+            idx = chunk.rfind(b"\n")
+            if idx >= 0:
+                keep = pos + idx + 1
+                break
+        fh.truncate(keep)
+        fh.flush()
+        os.fsync(fh.fileno())
+    logger.warning("%s: removed an incomplete last line (%d bytes) left by an interrupted run", path, size - keep)
+    return True
+
+
+class RowLog:
+    """Append-only CSV: one ``write`` of a complete line, then ``fsync``, per row.
+
+    A row whose write or fsync fails (an exception, not an interrupt) is cut off again (the file ends
+    with a complete line), so the caller can record something else for the pair.
+    """
+
+    def __init__(self, path: Path, header: Sequence[str]) -> None:
+        self.path = path
+        self.fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        if os.fstat(self.fd).st_size == 0:
+            self.append(header)
+
+    def size(self) -> int:
+        return os.fstat(self.fd).st_size
+
+    def append(self, fields: Iterable[str]) -> None:
+        data = csv_line(fields).encode("utf-8")
+        before = self.size()
+        try:
+            view = memoryview(data)
+            while view:
+                n = os.write(self.fd, view)
+                view = view[n:]
+            os.fsync(self.fd)
+        except Exception:  # not on Ctrl-C/SIGTERM: a complete row stays, a torn one is cut on --resume
+            self.truncate(before)
+            raise
+
+    def truncate(self, size: int) -> None:
+        """Cut the file back to ``size`` bytes (best effort: the repair on ``--resume`` covers the rest)."""
+        try:
+            if self.size() > size:
+                os.ftruncate(self.fd, size)
+                os.fsync(self.fd)
+        except OSError:
+            logger.warning("%s: could not remove an incomplete row", self.path)
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+def read_rows(path: Path, header: Sequence[str]) -> list[dict[str, str]]:
+    """Rows of an output CSV whose header must be exactly ``header`` (empty/missing file: no rows)."""
+    if not path.exists() or path.stat().st_size == 0:
+        return []
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.reader(fh)
+        try:
+            got = next(reader)
+        except StopIteration:
+            return []
+        if tuple(got) != tuple(header):
+            missing = [c for c in header if c not in got]
+            if missing and [c for c in header if c not in missing] == got:
+                raise BatchError(
+                    f"{path} was written by an earlier gctr (no {', '.join(missing)} column); finish that run "
+                    "with the gctr version that started it, or choose another output folder"
+                )
+            raise BatchError(
+                f"{path} does not look like a gctr output (header {','.join(got)[:120]!r}); "
+                "choose another output folder"
+            )
+        return [dict(zip(header, row)) for row in reader if row]
+
+
+def check_same_config(outdir: Path, config: Config) -> None:
+    """On resume the engine/seed/success settings must match the ones the folder was started with."""
+    path = outdir / CONFIG_FILE
+    if not path.exists():
+        return
+    try:
+        old = load_config(path)
+    except ConfigError as exc:
+        raise BatchError(f"cannot resume: {exc}") from None
+    a = flatten_dict(old.model_dump(mode="json", exclude={"batch"}))
+    b = flatten_dict(config.model_dump(mode="json", exclude={"batch"}))
+    diff = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    if diff:
+        shown = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in diff[:5])
+        more = f" (and {len(diff) - 5} more)" if len(diff) > 5 else ""
+        raise BatchError(
+            f"cannot resume: the config differs from {path} ({shown}{more}); resume with "
+            f"-c {path} or choose another output folder"
+        )
+
+
+def prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
+    """Make the folder consistent for appending; return the pair ids already committed."""
+    transforms = outdir / TRANSFORMS_FILE
+    errors = outdir / ERRORS_FILE
+    (outdir / MATRICES_DIR).mkdir(exist_ok=True)
+
+    if not resume:
+        # a file with only its header (a run stopped before its first pair, e.g. no dask scheduler) holds
+        # nothing: start afresh; one with rows, or not written by gctr, is never overwritten
+        if transforms.exists() and transforms.stat().st_size > 0 and (
+            transforms.read_bytes()[:4096].count(b"\n") > 1 or read_rows(transforms, TRANSFORMS_COLUMNS)
+        ):
+            raise BatchError(
+                f"{transforms} already exists: pass --resume to finish that run, or choose another output folder"
+            )
+        # nothing was committed: any tm_errors rows are leftovers
+        for path in (transforms, errors):
+            if path.exists():
+                path.unlink()
+        return set()
+
+    check_same_config(outdir, config)
+    truncate_partial_line(transforms)
+    truncate_partial_line(errors)
+    done = {r["pair_id"] for r in read_rows(transforms, TRANSFORMS_COLUMNS)}
+    # keep exactly one error row per committed pair (drop rows of pairs killed before their commit)
+    err_rows = read_rows(errors, ERRORS_COLUMNS)
+    kept: dict[str, dict[str, str]] = {}
+    for r in err_rows:
+        if r["pair_id"] in done:
+            kept[r["pair_id"]] = r
+    if len(kept) != len(err_rows):
+        logger.info("%s: dropped %d rows of unfinished pairs", errors, len(err_rows) - len(kept))
+        text = csv_line(ERRORS_COLUMNS) + "".join(csv_line(r[c] for c in ERRORS_COLUMNS) for r in kept.values())
+        atomic_write(errors, text)
+    return done
+
+
+def _problem(exc: BaseException) -> str:
+    """gctr's own errors name the file and the problem already; others get their type too."""
+    return str(exc) if type(exc).__module__.startswith("gctr_cli") and str(exc) else exc_message(exc)
+
+
+class Outputs:
+    """The output files of a running batch; :meth:`commit` records one finished pair (see the module
+    docstring for the order and what happens when writing fails)."""
+
+    def __init__(self, outdir: Path) -> None:
+        self.outdir = outdir
+        self.transforms = RowLog(outdir / TRANSFORMS_FILE, TRANSFORMS_COLUMNS)
+        try:
+            self.errors = RowLog(outdir / ERRORS_FILE, ERRORS_COLUMNS)
+        except BaseException:
+            self.transforms.close()
+            raise
+        fsync_dir(outdir)
+
+    def commit(self, outcome: PairOutcome) -> PairOutcome:
+        """Write the pair's files and rows; return the outcome as recorded (a failed ``"output"``
+        outcome when its files could not be written). Raises :class:`BatchError` only when not even
+        a failed row can be appended to ``transforms.csv``."""
+        for w in outcome.warnings:
+            logger.warning("pair %s: %s", outcome.pair_id, w)  # gctr's own are in the message too
+        try:
+            self._write(outcome)
+        except Exception as exc:  # noqa: BLE001 - one pair's outputs must never end the batch
+            logger.debug("pair %s: cannot write its outputs", outcome.pair_id, exc_info=True)
+            failed = failed_outcome(
+                outcome, outcome.seed, f"cannot write its outputs: {_problem(exc)}", "output", outcome.runtime_s,
+                fitness=outcome.fitness, inlier_rmse=outcome.inlier_rmse, confidence=outcome.confidence,
+            )
+            try:
+                self._write(failed)
+            except Exception as exc2:  # noqa: BLE001
+                raise BatchError(
+                    f"cannot record pair {outcome.pair_id!r} in {self.transforms.path}: {exc_message(exc2)}; the "
+                    "pairs finished so far are saved: fix the problem, then rerun with --resume"
+                ) from exc2
+            outcome = failed
+        if not outcome.ok:
+            level = logging.WARNING if outcome.failure in ("worker", "timeout", "output") else logging.INFO
+            logger.log(level, "pair %s failed: %s", outcome.pair_id, outcome.message)
+        return outcome
+
+    def _write(self, outcome: PairOutcome) -> None:
+        """All files of one pair, or (on an exception) none of its rows and no matrix."""
+        transforms_row = outcome.transforms_row  # formatted first: a bad value fails before any write
+        errors_row = outcome.errors_row
+        matrix = self.outdir / MATRICES_DIR / f"{outcome.pair_id}.txt"
+        errors_size = self.errors.size()
+        try:
+            if outcome.transform is not None:
+                from gctr_cli.io import write_matrix
+
+                write_matrix(matrix, outcome.transform)
+            if outcome.snapshot_png is not None:
+                self._write_snapshot(outcome)
+            if errors_row is not None:
+                self.errors.append(errors_row)
+            self.transforms.append(transforms_row)  # the commit
+        except Exception:  # (an interrupt leaves what was written: --resume repairs or overwrites it)
+            self.errors.truncate(errors_size)
+            if outcome.transform is not None:
+                try:
+                    matrix.unlink()
+                except OSError:
+                    pass
+            raise
+
+    def _write_snapshot(self, outcome: PairOutcome) -> None:
+        try:
+            from gctr_cli.snapshots import write_png
+
+            write_png(self.outdir / SNAPSHOTS_DIR / f"{outcome.pair_id}.png", outcome.snapshot_png)
+        except Exception as exc:  # noqa: BLE001 - a snapshot never fails the pair
+            logger.warning("pair %s: cannot write its snapshot: %s", outcome.pair_id, exc_message(exc))
+
+    def close(self) -> None:
+        self.transforms.close()
+        self.errors.close()

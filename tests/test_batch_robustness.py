@@ -1,0 +1,130 @@
+"""Nothing a manifest or the output folder can do crashes a batch (issue 12).
+
+Long pair ids are refused up front (exit 2 naming the manifest line); a pair whose outputs cannot be
+written becomes that pair's failed row; only a transforms.csv that cannot take even that row stops the
+batch (exit 2, finished rows kept).
+"""
+
+from __future__ import annotations
+
+import errno
+import functools
+
+import pytest
+from click.testing import CliRunner
+
+import fake_engine
+from conftest import read_csv
+from gctr_cli import batch, cli, outdir
+from gctr_cli.batch import BatchError, run_batch
+from gctr_cli.manifest import MAX_PAIR_ID_BYTES, PairSpec
+from gctr_cli.outcome import TRANSFORMS_COLUMNS
+
+
+@pytest.fixture
+def fake_batch(monkeypatch):
+    monkeypatch.setattr(batch, "run_batch", functools.partial(batch.run_batch, register_fn=fake_engine.register))
+
+
+def invoke(*args):
+    return CliRunner().invoke(cli.main, [str(a) for a in args], catch_exceptions=False)
+
+
+def by_id(path):
+    return {r["pair_id"]: r for r in read_csv(path)[1]}
+
+
+def test_a_long_pair_id_is_refused_naming_its_line(four_pairs, tmp_path, fake_batch):
+    r = four_pairs.rows[0]  # the case of the issue: the matrix name fits, its temporary name did not
+    four_pairs.add_raw("x" * 240, r["source"], r["target"], r["gt"])
+    result = invoke("batch", four_pairs.manifest(), "-o", tmp_path / "out", "-q")
+    assert result.exit_code == 2
+    assert "line 7: pair_id" in result.output and f"is too long (240 bytes in UTF-8, at most {MAX_PAIR_ID_BYTES})" \
+        in result.output
+    assert not (tmp_path / "out" / "transforms.csv").exists()  # nothing was run
+
+
+def test_the_longest_allowed_pair_id_runs_end_to_end(dataset, fast_config, tmp_path):
+    longest = "é" * (MAX_PAIR_ID_BYTES // 2)  # 200 bytes in UTF-8: every file it names fits in 255
+    dataset.add_pair(longest)
+    summary = run_batch(dataset.specs(), fast_config, tmp_path / "out", workers=1, register_fn=fake_engine.register,
+                        snapshots=True)
+    assert summary.n_ok == 1
+    assert (tmp_path / "out" / "matrices" / f"{longest}.txt").is_file()
+    assert (tmp_path / "out" / "snapshots" / f"{longest}.png").is_file()
+
+
+def test_pairs_built_in_code_are_checked_too(four_pairs, fast_config, tmp_path):
+    spec = four_pairs.specs()[0]
+    long = PairSpec(pair_id="y" * 300, source=spec.source, target=spec.target)
+    with pytest.raises(BatchError, match="too long"):
+        run_batch([spec, long], fast_config, tmp_path / "out", register_fn=fake_engine.register)
+
+
+def test_outputs_that_cannot_be_written_give_that_pair_a_failed_row(four_pairs, fast_config, tmp_path, fake_batch):
+    out = tmp_path / "out"
+    (out / "matrices" / "pcd_xyz.txt").mkdir(parents=True)  # the matrix file cannot be created
+    result = invoke("batch", four_pairs.manifest(), "-o", out, "-q")
+    assert result.exit_code == 1, result.output  # one pair failed, the batch finished
+    rows = by_id(out / "transforms.csv")
+    assert len(rows) == 5 and sum(r["status"] == "ok" for r in rows.values()) == 4
+    bad = rows["pcd_xyz"]
+    assert bad["status"] == "failed" and bad["m00"] == ""
+    assert bad["message"] == f"cannot write its outputs: {out}/matrices/pcd_xyz.txt: cannot write file (Is a directory)"
+    assert bad["fitness"] == "0.875" and float(bad["confidence"]) > 0.5  # what the engine said is kept
+    assert "pcd_xyz" not in by_id(out / "tm_errors.csv")  # no error row for a failed pair
+    assert "pcd_xyz: cannot write its outputs" in result.output
+    # and --resume has nothing left to do (the failed row is a result), instead of crashing again
+    again = invoke("batch", four_pairs.manifest(), "-o", out, "-q", "--resume")
+    assert again.exit_code == 1 and "(5 done by an earlier run)" in again.output
+
+
+def test_a_failed_commit_is_undone_before_the_failed_row(four_pairs, fast_config, tmp_path, monkeypatch):
+    """ENOSPC on the commit row: the pair's error row and matrix are removed, then its failed row fits."""
+    real_append = outdir.RowLog.append
+    failures = []
+
+    def append(self, fields):
+        fields = list(fields)
+        if self.path.name == "transforms.csv" and fields[0] == "ply_ply" and fields[3] == "ok" and not failures:
+            failures.append(fields[0])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_append(self, fields)
+
+    monkeypatch.setattr(outdir.RowLog, "append", append)
+    out = tmp_path / "out"
+    summary = run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    assert failures == ["ply_ply"] and summary.n_failed == 1 and summary.n_ok == 4
+    row = by_id(out / "transforms.csv")["ply_ply"]
+    assert row["status"] == "failed" and "No space left on device" in row["message"]
+    assert "ply_ply" not in by_id(out / "tm_errors.csv")
+    assert not (out / "matrices" / "ply_ply.txt").exists()
+    assert len(read_csv(out / "tm_errors.csv")[1]) == 3  # the other pairs with ground truth
+
+
+def test_a_transforms_csv_that_takes_no_row_stops_the_batch(four_pairs, fast_config, tmp_path, monkeypatch):
+    real_append = outdir.RowLog.append
+
+    def append(self, fields):
+        fields = list(fields)
+        if self.path.name == "transforms.csv" and fields[0] == "xyz_ply":
+            raise OSError(errno.EIO, "Input/output error")
+        return real_append(self, fields)
+
+    monkeypatch.setattr(outdir.RowLog, "append", append)
+    out = tmp_path / "out"
+    with pytest.raises(BatchError, match="cannot record pair 'xyz_ply'.*rerun with --resume"):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    rows = by_id(out / "transforms.csv")
+    assert "xyz_ply" not in rows and all(r["status"] == "ok" for r in rows.values())
+    assert not (out / ".gctr.lock").exists()
+
+
+def test_resuming_a_folder_without_the_confidence_column_says_why(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    old = [c for c in TRANSFORMS_COLUMNS if c != "confidence"]
+    text = (out / "transforms.csv").read_text().splitlines()
+    (out / "transforms.csv").write_text(",".join(old) + "\n" + text[1] + "\n")  # as an earlier gctr wrote it
+    with pytest.raises(BatchError, match="earlier gctr \\(no confidence column\\)"):
+        run_batch(four_pairs.specs(), fast_config, out, resume=True, register_fn=fake_engine.register)
