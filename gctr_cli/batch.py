@@ -45,7 +45,7 @@ from gctr_cli.fsutil import THREAD_ENV_VARS, atomic_write
 from gctr_cli.lock import LOCK_NAME, OutdirLock
 from gctr_cli.manifest import pair_id_problem
 from gctr_cli.outcome import ERRORS_COLUMNS, MATRIX_COLUMNS, TRANSFORMS_COLUMNS, PairOutcome, exc_message
-from gctr_cli.outdir import CONFIG_FILE, REPORT_FILE, SNAPSHOTS_DIR, Outputs, prepare_outdir
+from gctr_cli.outdir import ALIGNED_DIR, CONFIG_FILE, REPORT_FILE, SNAPSHOTS_DIR, Outputs, prepare_outdir
 from gctr_cli.pair import RegisterFn, derive_seed, run_pair
 from gctr_cli.summary import BatchSummary, summarize
 
@@ -122,6 +122,7 @@ def run_batch(
     executor: str = "local",
     scheduler: str | None = None,
     snapshots: bool = False,
+    write_aligned: bool = False,
 ) -> BatchSummary:
     """Register every pair of ``pairs`` (a manifest) and stream the outputs into ``outdir``.
 
@@ -133,7 +134,9 @@ def run_batch(
     n_done)`` is called once before the first pair, ``on_outcome`` after each pair is written (e.g.
     to advance a progress bar). ``executor``: ``"local"`` (process pool) or ``"dask"``
     (``scheduler``: address of a running dask scheduler; ``None`` starts a LocalCluster).
-    ``snapshots``: also write ``OUTDIR/snapshots/<pair_id>.png``. At the end ``OUTDIR/report.html``
+    ``snapshots``: also write ``OUTDIR/snapshots/<pair_id>.png``. ``write_aligned``: also write each
+    ok pair's source moved onto the target, ``OUTDIR/aligned/<pair_id>.<ext>`` (committed with the
+    pair: if it cannot be written, the pair gets a failed row and no matrix). At the end ``OUTDIR/report.html``
     is written (all rows of ``transforms.csv``, including resumed ones). Raises :class:`BatchError`
     (nothing run) when the output folder is in use or inconsistent, or the executor cannot start; and
     when the batch cannot go on (:class:`ExecutorLost`: the dask scheduler went away; or not even a
@@ -159,13 +162,15 @@ def run_batch(
         atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
         if snapshots:
             (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
+        if write_aligned:
+            (outdir / ALIGNED_DIR).mkdir(exist_ok=True)
         if n_resumed:
             logger.info("resuming: %d of %d pairs already done", n_resumed, len(pairs))
         if on_start is not None:
             on_start(len(todo), n_resumed)
 
         tasks = [(p, derive_seed(config.seed, p.pair_id)) for p in todo]
-        outputs = Outputs(outdir)
+        outputs = Outputs(outdir, write_aligned=write_aligned)
         n_run = 0
         try:
             if tasks:

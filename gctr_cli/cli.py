@@ -348,8 +348,12 @@ def _print_summary(summary: Any, config: Any) -> None:
                    "--executor dask starts a local cluster of -j worker processes.")
 @click.option("--snapshots", is_flag=True,
               help="Also write OUTDIR/snapshots/<pair_id>.png: both clouds before and after registration.")
+@click.option("--write-aligned", is_flag=True,
+              help="Also write OUTDIR/aligned/<pair_id>.<ext>: each registered source moved onto its target "
+                   "(the source's format when writable, else PLY; attributes kept where the format allows).")
 def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | None, resume: bool, quiet: bool,
-          min_success: float | None, executor: str | None, scheduler: str | None, snapshots: bool) -> None:
+          min_success: float | None, executor: str | None, scheduler: str | None, snapshots: bool,
+          write_aligned: bool) -> None:
     """Register every pair of MANIFEST in a pool of worker processes (or on a dask cluster).
 
     MANIFEST is a CSV with header pair_id,source,target[,gt] (relative paths are relative to the
@@ -408,7 +412,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         with _sigterm_as_interrupt(), redirect:
             summary = batch_mod.run_batch(
                 pairs, config, outdir, workers=workers, resume=resume, on_start=on_start, on_outcome=on_outcome,
-                executor=executor, scheduler=scheduler, snapshots=snapshots,
+                executor=executor, scheduler=scheduler, snapshots=snapshots, write_aligned=write_aligned,
             )
     except batch_mod.BatchError as exc:
         # one clear line; the cause's traceback (e.g. from distributed) only under -vv

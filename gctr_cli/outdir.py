@@ -49,6 +49,7 @@ __all__ = [
 TRANSFORMS_FILE = "transforms.csv"
 ERRORS_FILE = "tm_errors.csv"
 MATRICES_DIR = "matrices"
+ALIGNED_DIR = "aligned"
 SNAPSHOTS_DIR = "snapshots"
 REPORT_FILE = "report.html"
 CONFIG_FILE = "config.yaml"
@@ -228,6 +229,15 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
     return done
 
 
+def aligned_path(outdir: Path, pair_id: str, source: str | Path) -> Path:
+    """``OUTDIR/aligned/<pair_id>.<ext>``: the source's own format when gctr can write it (PLY, PCD,
+    LAS/LAZ, XYZ/PTS/TXT), else PLY (e.g. for an E57 source)."""
+    from gctr_cli.io import WRITE_EXTENSIONS
+
+    ext = Path(source).suffix.lower()
+    return outdir / ALIGNED_DIR / f"{pair_id}{ext if ext in WRITE_EXTENSIONS else '.ply'}"
+
+
 def _problem(exc: BaseException) -> str:
     """gctr's own errors name the file and the problem already; others get their type too."""
     return str(exc) if type(exc).__module__.startswith("gctr_cli") and str(exc) else exc_message(exc)
@@ -237,8 +247,9 @@ class Outputs:
     """The output files of a running batch; :meth:`commit` records one finished pair (see the module
     docstring for the order and what happens when writing fails)."""
 
-    def __init__(self, outdir: Path) -> None:
+    def __init__(self, outdir: Path, write_aligned: bool = False) -> None:
         self.outdir = outdir
+        self.write_aligned = write_aligned
         self.transforms = RowLog(outdir / TRANSFORMS_FILE, TRANSFORMS_COLUMNS)
         try:
             self.errors = RowLog(outdir / ERRORS_FILE, ERRORS_COLUMNS)
@@ -279,12 +290,17 @@ class Outputs:
         transforms_row = outcome.transforms_row  # formatted first: a bad value fails before any write
         errors_row = outcome.errors_row
         matrix = self.outdir / MATRICES_DIR / f"{outcome.pair_id}.txt"
+        aligned = aligned_path(self.outdir, outcome.pair_id, outcome.source) if self.write_aligned else None
         errors_size = self.errors.size()
         try:
             if outcome.transform is not None:
                 from gctr_cli.io import write_matrix
 
                 write_matrix(matrix, outcome.transform)
+                if aligned is not None:
+                    from gctr_cli.io import write_aligned
+
+                    write_aligned(outcome.source, outcome.transform, aligned)
             if outcome.snapshot_png is not None:
                 self._write_snapshot(outcome)
             if errors_row is not None:
@@ -293,10 +309,12 @@ class Outputs:
         except Exception:  # (an interrupt leaves what was written: --resume repairs or overwrites it)
             self.errors.truncate(errors_size)
             if outcome.transform is not None:
-                try:
-                    matrix.unlink()
-                except OSError:
-                    pass
+                for path in (matrix, aligned):
+                    try:
+                        if path is not None:
+                            path.unlink()
+                    except OSError:
+                        pass
             raise
 
     def _write_snapshot(self, outcome: PairOutcome) -> None:

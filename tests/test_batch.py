@@ -498,3 +498,40 @@ def test_register_fn_must_be_importable_by_workers(dataset, fast_config, tmp_pat
 
     with pytest.raises(BatchError, match="module-level function"):
         run(dataset, fast_config, tmp_path / "out", register_fn=local_fn)
+
+
+# ----------------------------------------------------------------------------------------------------
+# --write-aligned: the moved source, committed with the pair
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_write_aligned_puts_each_source_onto_its_target(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, write_aligned=True)
+    _, rows = read_csv(out / "transforms.csv")
+    specs = {s.pair_id: s for s in four_pairs.specs()}
+    for row in rows:
+        spec = specs[row["pair_id"]]
+        ext = spec.source.suffix  # PLY, PCD and XYZ are all writable: the source's own format
+        aligned = out / "aligned" / f"{row['pair_id']}{ext}"
+        moved = np.asarray(load_point_cloud(aligned))
+        src = np.asarray(load_point_cloud(spec.source))
+        T = row_matrix(row)
+        expected = src @ T[:3, :3].T + T[:3, 3]
+        assert moved.shape == src.shape
+        # PLY/PCD float32 storage of UTM-size coordinates: compare relative to the magnitude
+        np.testing.assert_allclose(moved, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
+
+
+def test_write_aligned_failure_fails_only_that_pair(four_pairs, fast_config, tmp_path):
+    """An aligned file that cannot be written (a folder is in its place) makes that pair a failed
+    'cannot write its outputs' row without a matrix; the other pairs are unaffected."""
+    out = tmp_path / "out"
+    (out / "aligned" / "pcd_xyz.pcd").mkdir(parents=True)
+    run(four_pairs, fast_config, out, write_aligned=True)
+    rows = by_id(read_csv(out / "transforms.csv")[1])
+    assert rows["pcd_xyz"]["status"] == "failed"
+    assert rows["pcd_xyz"]["message"].startswith("cannot write its outputs"), rows["pcd_xyz"]["message"]
+    assert not (out / "matrices" / "pcd_xyz.txt").exists()
+    assert all(rows[p]["status"] == "ok" for p in rows if p != "pcd_xyz")
+    assert (out / "aligned" / "ply_ply.ply").is_file()

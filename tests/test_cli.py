@@ -262,6 +262,21 @@ def test_batch_all_ok_exit_0_and_resume(runner, fake_batch, four_pairs, tmp_path
     assert len(read_csv(out / "transforms.csv")[1]) == 5
 
 
+def test_batch_write_aligned(runner, fake_batch, four_pairs, tmp_path):
+    out = tmp_path / "out"
+    res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "-j", 1, "--write-aligned")
+    assert res.exit_code == 0, res.output
+    specs = {s.pair_id: s for s in four_pairs.specs()}
+    _, rows = read_csv(out / "transforms.csv")
+    for r in rows:
+        aligned = out / "aligned" / f"{r['pair_id']}{specs[r['pair_id']].source.suffix}"
+        src = np.asarray(load_point_cloud(specs[r["pair_id"]].source))
+        T = row_matrix(r)
+        moved = np.asarray(load_point_cloud(aligned))
+        np.testing.assert_allclose(moved, src @ T[:3, :3].T + T[:3, 3], rtol=1e-6,
+                                   atol=1e-6 * np.abs(moved).max())
+
+
 def test_batch_exit_1_and_3(runner, fake_batch, four_pairs, tmp_path):
     ds = four_pairs
     (ds.root / "empty.pcd").write_bytes(b"")
