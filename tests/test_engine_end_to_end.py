@@ -27,7 +27,7 @@ pytestmark = pytest.mark.engine
 
 MODELS = Path(__file__).resolve().parent.parent / "data" / "models"
 STAGE_KEYS = {"preprocess", "supervoxels", "tensor", "power_iteration", "ransac", "verify", "similarity",
-              "scoring", "refine"}
+              "scoring", "refine", "verdict"}
 
 
 def _openblas_libs() -> list:
