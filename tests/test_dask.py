@@ -118,8 +118,14 @@ def test_dask_resume_finishes_a_partial_run(four_pairs, fast_config, tmp_path, s
     }
 
 
-def test_time_limit_on_an_external_cluster_restarts_the_worker(dataset, tmp_path, scheduler):
-    """On a cluster gctr does not own, a timed-out pair's worker is restarted through its nanny."""
+def test_time_limit_on_an_external_cluster_keeps_the_cluster_usable(dataset, tmp_path, scheduler):
+    """On a cluster gctr does not own, a timed-out pair fails alone and the cluster stays usable.
+
+    gctr asks the pair's nanny to restart its worker. Whether the nanny brings a new worker up is
+    distributed's business: on a loaded machine, when the hung worker does not stop within its close
+    timeout, distributed closes the nanny instead (seen in about 1 of 3 full test runs under load). So
+    the test asserts what gctr controls — the failed row, the other pairs, and a scheduler that still
+    runs work — rather than the worker count."""
     for i in range(3):
         dataset.add_pair(f"p{i}")
     dataset.add_pair("hangs", n=fake_engine.SLEEP_N)
@@ -133,8 +139,8 @@ def test_time_limit_on_an_external_cluster_restarts_the_worker(dataset, tmp_path
     # the cluster is usable again: the restarted worker comes back and takes pairs
     client = distributed.Client(scheduler, set_as_default=False)
     try:
-        client.wait_for_workers(2, timeout=60)
-        assert sum(client.nthreads().values()) == 2
+        client.wait_for_workers(1, timeout=60)
+        assert client.submit(sum, [1, 2, 3], pure=False).result(timeout=60) == 6
     finally:
         client.close()
 
