@@ -19,7 +19,7 @@ import numpy as np
 from gctr_cli.io.cloud import PointCloud
 from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.lines import LineReader, parse_float, read_rows
-from gctr_cli.io.ply import format_columns
+from gctr_cli.io.ply import format_columns, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]
 
@@ -284,10 +284,7 @@ def pcd_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
         f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {'binary' if binary else 'ascii'}\n"
     )
     if binary:
-        rec = np.empty(n, dtype=[(f"c{i}", v.dtype) for i, (_, v) in enumerate(cols)])
-        for i, (_, v) in enumerate(cols):
-            rec[f"c{i}"] = v
-        body = rec.tobytes()
+        body = pack_columns([v for _, v in cols])
     else:
         body = format_columns([v if name != "rgb" else v.astype(np.float64) for name, v in cols])
     return header.encode("ascii") + body

@@ -385,14 +385,16 @@ def ply_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
     fmt = "binary_little_endian" if binary else "ascii"
     header = f"ply\nformat {fmt} 1.0\ncomment written by gctr\nelement vertex {n}\n"
     header += "".join(f"property {_TYPE_NAMES[v.dtype.str[1:]]} {name}\n" for name, v in cols) + "end_header\n"
-    if binary:
-        rec = np.empty(n, dtype=[(f"c{i}", v.dtype) for i, (_, v) in enumerate(cols)])
-        for i, (_, v) in enumerate(cols):
-            rec[f"c{i}"] = v
-        body = rec.tobytes()
-    else:
-        body = format_columns([v for _, v in cols])
+    body = pack_columns([v for _, v in cols]) if binary else format_columns([v for _, v in cols])
     return header.encode("ascii") + body
+
+
+def pack_columns(cols: list[np.ndarray]) -> bytes:
+    """Interleave equal-length columns into packed binary records (each column keeps its dtype)."""
+    rec = np.empty(len(cols[0]) if cols else 0, dtype=[(f"c{i}", v.dtype) for i, v in enumerate(cols)])
+    for i, v in enumerate(cols):
+        rec[f"c{i}"] = v
+    return rec.tobytes()
 
 
 def format_columns(cols: list[np.ndarray]) -> bytes:
