@@ -1,9 +1,10 @@
 """``OUTDIR/report.html``: a self-contained page summarising a batch run.
 
-The page needs no network: CSS and the small sorting script are inline, the error plot is an inline
-PNG (data URI), and snapshot thumbnails are relative links to ``snapshots/<pair_id>.png`` next to the
-report. It is built from the output files alone (``transforms.csv``, ``tm_errors.csv``,
-``config.yaml``), so after ``--resume`` it covers every row, including those of earlier runs.
+The page needs no network: CSS and the small sorting script are inline, the plots (cumulative error
+distributions and the confidence-threshold trade-off) are inline SVG, and snapshot thumbnails are
+relative links to ``snapshots/<pair_id>.png`` next to the report. It is built from the output files
+alone (``transforms.csv``, ``tm_errors.csv``, ``config.yaml``), so after ``--resume`` it covers every
+row, including those of earlier runs.
 
 The pairs table sorts on a click on a column header (again: reverse). The page also honours a URL
 fragment, e.g. ``report.html#sort=-rot_err_deg&status=failed`` (sort by rotation error, descending,
