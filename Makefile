@@ -49,8 +49,8 @@ browser-deps:
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
-# Reinstall when the project metadata changes.
-$(VENV)/.installed: pyproject.toml | $(BIN)/python
+# Reinstall when the project metadata changes (the version is read from gctr_cli/__init__.py).
+$(VENV)/.installed: pyproject.toml gctr_cli/__init__.py | $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	@touch $@
