@@ -58,6 +58,7 @@ class TensorConfig(_Strict):
     """Sparse third-order tensor from k nearest neighbours in descriptor space."""
 
     knn: int = Field(50, ge=1, le=1000, description="target triangles matched per source triangle")
+    knn_eps: float = Field(0.0, ge=0, description="approximate neighbour search: neighbours within (1 + eps) of the exact k-th distance; 0 = exact")
     normal_weight: float = Field(1.0, ge=0, description="weight of the vertex-normal terms of the descriptor; 0 = angles only")
     sigma: float = Field(0.0, ge=0, description="descriptor bandwidth; 0 = mean kNN distance")
     first_order_weight: float = Field(1.0, ge=0, description="weight of the point-to-point term")
@@ -66,7 +67,7 @@ class TensorConfig(_Strict):
 
 
 class PowerIterationConfig(_Strict):
-    iterations: int = Field(15, ge=1, le=1000)
+    iterations: int = Field(8, ge=1, le=1000)
     tol: float = Field(1e-6, gt=0)
     normalisation_rounds: int = Field(3, ge=0, le=50, description="row/column L2 normalisations per step")
 
@@ -89,14 +90,15 @@ class OuterLoopConfig(_Strict):
 
 
 class RefineConfig(_Strict):
-    """Dense refinement after GCTR: trimmed scaled ICP on the working clouds."""
+    """Refinement of the verdict's finalists: scaled ICP (point-to-plane, dropping matches with incompatible
+    normals); a finalist keeps the refined transform only if its tight surface agreement does not drop."""
 
     enabled: bool = True
     method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
-    iterations: int = Field(30, ge=1, le=500)
+    iterations: int = Field(15, ge=1, le=500)
     start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / robust diameter")
     end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")
-    voxel_ratio: float = Field(0.01, gt=0, lt=0.5, description="voxel size of the refinement clouds / robust diameter")
+    voxel_ratio: float = Field(0.0, ge=0, lt=0.5, description="voxel size of the refinement clouds / robust diameter; 0 = refine on the working clouds")
     max_points: int = Field(12000, ge=100, description="working size of each refinement cloud")
 
 

@@ -55,7 +55,7 @@ from gctr_cli.engine.refine import evaluate_fit, scaled_point_to_plane_icp, trim
 from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.similarity import apply, best_similarity, to_matrix
 from gctr_cli.engine.supervoxel import supervoxels
-from gctr_cli.engine.tensor import SparseTensor3, build_first_order, build_third_order, entry_scores, subset
+from gctr_cli.engine.tensor import SparseTensor3, build_first_order, build_third_order, entry_scores
 from gctr_cli.engine.triplets import sample_triangles
 from gctr_cli.engine.verdict import Agreement, Surface, Verdict, confidence, displacement, surface_agreement
 
@@ -129,13 +129,6 @@ def _prepare(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, ti
     return _Prepared(points=work, normals=normals, tree=tree, salient=salient, salient_normals=salient_normals,
                      salient_tree=cKDTree(salient),
                      surface=Surface.build(work, normals, tree, cfg.verdict.sample_points))
-
-
-def _edges(points: np.ndarray, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Shortest edge and perimeter of each triangle (i, j, k)."""
-    a, b, c = points[i], points[j], points[k]
-    e = np.stack([np.linalg.norm(a - b, axis=1), np.linalg.norm(b - c, axis=1), np.linalg.norm(c - a, axis=1)])
-    return e.min(axis=0), e.sum(axis=0)
 
 
 def _dense_scores(src: _Prepared, tgt: _Prepared, hyp: Hypotheses, distance: float,
@@ -279,6 +272,12 @@ def _local_triangles(points: np.ndarray, region: float, n: int, cfg: EngineConfi
     return sample_triangles(points, n, tri.min_edge_ratio * region, rng, tri.min_angle_deg, max_edge=max_edge)
 
 
+def _perimeters(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Perimeter of each triangle (i, j, k)."""
+    a, b, c = points[triangles[:, 0]], points[triangles[:, 1]], points[triangles[:, 2]]
+    return np.linalg.norm(a - b, axis=1) + np.linalg.norm(b - c, axis=1) + np.linalg.norm(c - a, axis=1)
+
+
 def _build_tensor(src: _Prepared, tgt: _Prepared, hypothesis: OverlapHypothesis, prior: tuple[float, float],
                   cfg: EngineConfig, rng: np.random.Generator) -> SparseTensor3:
     """Third-order tensor of one overlap hypothesis: its own local triangles on both sides, matched
@@ -288,16 +287,12 @@ def _build_tensor(src: _Prepared, tgt: _Prepared, hypothesis: OverlapHypothesis,
     S, Q = src.salient, tgt.salient
     src_tri = _local_triangles(S, hypothesis.region_src, tri.n_source, cfg, rng)
     tgt_tri = with_ambiguous_permutations(Q, _local_triangles(Q, hypothesis.region_tgt, tri.n_target, cfg, rng))
-    H3 = build_third_order(len(S), src_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
-                           len(Q), tgt_tri, triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w),
-                           cfg.tensor.knn, cfg.tensor.sigma)
-    if not cfg.tensor.scale_filter or len(H3.values) == 0:
-        return H3
-    n2 = len(Q)
-    src_perimeter = _edges(S, H3.a // n2, H3.b // n2, H3.c // n2)[1]
-    tgt_perimeter = _edges(Q, H3.a % n2, H3.b % n2, H3.c % n2)[1]
-    implied = tgt_perimeter / np.maximum(src_perimeter, 1e-12)
-    return subset(H3, (implied >= prior[0] / 1.2) & (implied <= prior[1] * 1.2))
+    size_filter = None
+    if cfg.tensor.scale_filter:
+        size_filter = (_perimeters(S, src_tri), _perimeters(Q, tgt_tri), prior[0] / 1.2, prior[1] * 1.2)
+    return build_third_order(len(S), src_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
+                             len(Q), tgt_tri, triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w),
+                             cfg.tensor.knn, cfg.tensor.sigma, eps=cfg.tensor.knn_eps, size_filter=size_filter)
 
 
 @dataclass(frozen=True)
@@ -316,6 +311,14 @@ class _Fine:
         normals = estimate_normals(pts, cfg.preprocess.normal_neighbours)
         tree = cKDTree(pts)
         return cls(pts, normals, tree, Surface.build(pts, normals, tree, cfg.verdict.sample_points))
+
+    @classmethod
+    def of(cls, prepared: _Prepared, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> "_Fine":
+        """The refinement cloud of one input: the search's working cloud itself when
+        ``refine.voxel_ratio`` is 0, else a finer downsampling of ``points``."""
+        if cfg.refine.voxel_ratio == 0:
+            return cls(prepared.points, prepared.normals, prepared.tree, prepared.surface)
+        return cls.build(points, cfg, rng)
 
 
 def _tight_agreement(T: np.ndarray, src_fine: _Fine, tgt_fine: _Fine, cfg: EngineConfig) -> Agreement:
@@ -484,7 +487,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
 
     t = time.perf_counter()
     refine_before = timer.timings.get("refine", 0.0)
-    src_fine, tgt_fine = _Fine.build(ns.points, cfg, rng_refine), _Fine.build(nt.points, cfg, rng_refine)
+    src_fine, tgt_fine = _Fine.of(src, ns.points, cfg, rng_refine), _Fine.of(tgt, nt.points, cfg, rng_refine)
     T_n, verdict = _decide(candidates, src, src_fine, tgt_fine, cfg, bounds_n, timer)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.

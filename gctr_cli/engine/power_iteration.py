@@ -22,14 +22,16 @@ def _normalise_rows_cols(x: np.ndarray, n1: int, n2: int, rounds: int) -> np.nda
     return m.ravel()
 
 
-def tensor_product(tensor: SparseTensor3, x: np.ndarray) -> np.ndarray:
-    """``H3 (x) x (x) x`` for a supersymmetric sparse tensor: each entry feeds all three slots."""
+def tensor_product(tensor: SparseTensor3, x: np.ndarray, slots: np.ndarray | None = None) -> np.ndarray:
+    """``H3 (x) x (x) x`` for a supersymmetric sparse tensor: each entry feeds all three slots.
+
+    ``slots`` is ``concatenate([a, b, c])`` (pass it when calling repeatedly: one ``np.bincount``
+    over all three slots instead of three)."""
     xa, xb, xc = x[tensor.a], x[tensor.b], x[tensor.c]
     v = tensor.values
-    n = tensor.size
-    return (np.bincount(tensor.a, weights=v * xb * xc, minlength=n)
-            + np.bincount(tensor.b, weights=v * xa * xc, minlength=n)
-            + np.bincount(tensor.c, weights=v * xa * xb, minlength=n))
+    if slots is None:
+        slots = np.concatenate([tensor.a, tensor.b, tensor.c])
+    return np.bincount(slots, weights=np.concatenate([v * xb * xc, v * xa * xc, v * xa * xb]), minlength=tensor.size)
 
 
 def power_iteration(tensor: SparseTensor3, first_order: SparseVector | None = None,
@@ -47,9 +49,10 @@ def power_iteration(tensor: SparseTensor3, first_order: SparseVector | None = No
     if first_order is not None and len(first_order.index) and first_order_weight > 0:
         np.add.at(h1, first_order.index, first_order.values)
         h1 *= first_order_weight / np.linalg.norm(h1)
+    slots = np.concatenate([tensor.a, tensor.b, tensor.c])
     it = 0
     for it in range(1, iterations + 1):
-        h3 = tensor_product(tensor, x) if len(tensor.values) else np.zeros(n)
+        h3 = tensor_product(tensor, x, slots) if len(tensor.values) else np.zeros(n)
         norm3 = np.linalg.norm(h3)
         x_new = (h3 / norm3 if norm3 > 0 else h3) + h1
         x_new = _normalise_rows_cols(x_new, n1, n2, normalisation_rounds)

@@ -133,6 +133,6 @@ def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
     _, idx = cKDTree(points).query(points, k=k)
     nbrs = points[idx] - points[:, None, :]  # local coordinates: better conditioned sums
     mean = nbrs.mean(axis=1)
-    cov = np.einsum("nki,nkj->nij", nbrs, nbrs) / k - mean[:, :, None] * mean[:, None, :]
+    cov = np.matmul(nbrs.transpose(0, 2, 1), nbrs) / k - mean[:, :, None] * mean[:, None, :]
     _, vecs = np.linalg.eigh(cov)
     return vecs[:, :, 0]

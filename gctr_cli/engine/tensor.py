@@ -43,24 +43,34 @@ class SparseVector:
 
 
 def build_third_order(n1: int, src_tri: np.ndarray, f_src: np.ndarray, n2: int, tgt_tri: np.ndarray,
-                      f_tgt: np.ndarray, knn: int, sigma: float = 0.0) -> SparseTensor3:
+                      f_tgt: np.ndarray, knn: int, sigma: float = 0.0, *, eps: float = 0.0,
+                      size_filter: tuple[np.ndarray, np.ndarray, float, float] | None = None) -> SparseTensor3:
     """Match each source triangle to its ``knn`` nearest target triangles in descriptor space.
 
     ``n1``/``n2`` are the numbers of salient points, ``*_tri`` index triples with vertices in
     corresponding (canonical) order and ``f_*`` their descriptors. The entry for a matched pair
-    links the three implied point assignments. ``sigma = 0`` uses the mean kNN distance.
+    links the three implied point assignments. ``sigma = 0`` uses the mean kNN distance. ``eps``
+    makes the neighbour search approximate (each neighbour within (1 + eps) of the true k-th
+    distance: much faster in 6-D, and the tensor only needs *similar* triangles).
+    ``size_filter = (src_size, tgt_size, lo, hi)`` drops matches whose size ratio
+    ``tgt_size / src_size`` (the scale the match implies) lies outside [lo, hi].
     """
     if len(src_tri) == 0 or len(tgt_tri) == 0:
         empty = np.empty(0, dtype=np.int64)
         return SparseTensor3(empty, empty, empty, np.empty(0), n1, n2)
     k = min(knn, len(tgt_tri))
-    dist, idx = cKDTree(f_tgt).query(f_src, k=k)
+    dist, idx = cKDTree(f_tgt).query(f_src, k=k, eps=eps)
     dist = dist.reshape(len(src_tri), k)
     idx = idx.reshape(len(src_tri), k)
     bandwidth = sigma if sigma > 0 else max(float(dist.mean()), 1e-12)
     values = np.exp(-((dist / bandwidth) ** 2)).ravel()
     s = np.repeat(np.arange(len(src_tri)), k)
     t = idx.ravel()
+    if size_filter is not None:
+        src_size, tgt_size, lo, hi = size_filter
+        ratio = tgt_size[t] / np.maximum(src_size[s], 1e-12)
+        keep = (ratio >= lo) & (ratio <= hi)
+        s, t, values = s[keep], t[keep], values[keep]
     a = src_tri[s, 0] * n2 + tgt_tri[t, 0]
     b = src_tri[s, 1] * n2 + tgt_tri[t, 1]
     c = src_tri[s, 2] * n2 + tgt_tri[t, 2]
