@@ -234,7 +234,7 @@ class BaselineKissConfig(_Strict):
     solver_noise_bound_gain: float = Field(0.75, gt=0, description="GNC solver noise bound / voxel size (<= the ROBIN gain)")
     max_correspondences: int = Field(5000, ge=10, description="feature correspondences kept at most")
     use_quatro: bool = Field(False, description="Quatro solver (4-DoF, gravity-aligned scenes) instead of the 6-DoF GNC")
-    min_inliers: int = Field(5, ge=3, description="fewer final inliers: the method reports failure")
+    min_inliers: int = Field(3, ge=3, description="fewer final inliers (or an invalid solution): the method reports failure")
 
     @model_validator(mode="after")
     def _metric_limits(self) -> "BaselineKissConfig":
