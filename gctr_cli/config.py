@@ -12,7 +12,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from gctr_cli.methods import METHODS
@@ -327,6 +326,8 @@ def load_config(path: str | Path | None) -> Config:
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file {p} does not exist")
+    import yaml  # here, not at the top: `gctr register` without -c never reads YAML
+
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as err:
@@ -337,6 +338,8 @@ def load_config(path: str | Path | None) -> Config:
 def config_to_yaml(config: Config) -> str:
     """Serialise a resolved config (all defaults filled in) as YAML."""
     data = config.model_dump(mode="json")
+    import yaml
+
     return yaml.safe_dump(data, sort_keys=False)
 
 
