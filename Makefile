@@ -18,6 +18,7 @@ help:
 	@echo "make bench-engine-tune  the same on the tuning set (seed 1) -> bench/work/ENGINE-seed1.md"
 	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the report set -> bench/RESULTS.md (long)"
 	@echo "make bench-quick   the same on 15 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
+	@echo "make bench-process whole-process time of gctr register vs an Open3D script, one core -> bench/PROCESS.md"
 	@echo "make bench-data       generate the REPORT set (--seed 0, all levels) -> bench/work/data"
 	@echo "make bench-data-tune  generate the TUNING set (--seed 1, all levels) -> bench/work/data-seed1"
 	@echo "                      (tune the engine on seed 1, report on seed 0; level scene reads SHARED=$(SHARED))"
@@ -92,3 +93,8 @@ bench: setup
 # Day-to-day variant (< 5 min on 2 cores): report in bench/work/compare-quick/RESULTS.md.
 bench-quick: setup
 	$(BIN)/python -m data_scripts.bench_compare --quick
+
+# Whole-process time of gctr register vs the equivalent Open3D script, one core (issue 10): bench/PROCESS.md.
+.PHONY: bench-process
+bench-process: setup
+	$(BIN)/python -m data_scripts.bench_process --out bench/PROCESS.md

@@ -12,8 +12,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from gctr_cli.methods import METHODS
+
+#: the accepted values of ``method``: the names of :data:`gctr_cli.methods.REGISTRY`, nothing to keep in sync
+MethodName = Literal[METHODS]  # type: ignore[valid-type]
 
 
 class ConfigError(ValueError):
@@ -215,15 +219,45 @@ class BaselineCpdConfig(_Strict):
     tol: float = Field(1e-6, gt=0, description="stop when the relative change of the EM objective is below")
 
 
+class BaselineKissConfig(_Strict):
+    """KISS-Matcher (Lim et al. 2025; optional package kiss-matcher): Faster-PFH, ROBIN pruning, GNC solver.
+
+    It is tuned for metric scenes: the normalised clouds (bounding-box diagonal 1) are scaled to a
+    diagonal of ``metric_diagonal`` "metres" before the call, and the scale is undone afterwards.
+    Its voxel must be at least 5 mm (it throws below); its clamping of noise bounds above 1 m (a heuristic
+    for large maps) is switched off, the bounds are voxel x gains."""
+
+    metric_diagonal: float = Field(20.0, gt=0, description="bbox diagonal the clouds are scaled to before the call (metres)")
+    voxel_ratio: float = Field(0.02, gt=0, lt=0.5, description="voxel size / bbox diagonal (0.4 m at a 20 m diagonal)")
+    normal_radius_factor: float = Field(3.0, gt=0, description="normal estimation radius / voxel size")
+    feature_radius_factor: float = Field(5.0, gt=0, description="Faster-PFH radius / voxel size")
+    robin_noise_bound_gain: float = Field(1.0, gt=0, description="ROBIN pruning noise bound / voxel size")
+    solver_noise_bound_gain: float = Field(0.75, gt=0, description="GNC solver noise bound / voxel size (<= the ROBIN gain)")
+    max_correspondences: int = Field(5000, ge=10, description="feature correspondences kept at most")
+    use_quatro: bool = Field(False, description="Quatro solver (4-DoF, gravity-aligned scenes) instead of the 6-DoF GNC")
+    min_inliers: int = Field(3, ge=3, description="fewer final inliers (or an invalid solution): the method reports failure")
+
+    @model_validator(mode="after")
+    def _metric_limits(self) -> "BaselineKissConfig":
+        voxel = self.voxel_ratio * self.metric_diagonal
+        if voxel < 0.005:
+            raise ValueError(f"voxel_ratio x metric_diagonal = {voxel:.4g} m is below KISS-Matcher's 5 mm limit")
+        if self.solver_noise_bound_gain > self.robin_noise_bound_gain:
+            raise ValueError("solver_noise_bound_gain must not exceed robin_noise_bound_gain")
+        return self
+
+
 class BaselineConfig(_Strict):
-    """Comparison methods (method: icp | fpfh_ransac | fgr | cpd). Each removes outliers, aligns the centroids
-    and scales the source by the ratio of bounding-box diagonals (the paper's protocol for comparison methods)."""
+    """Comparison methods (method: icp | fpfh_ransac | fgr | cpd | kiss_matcher). Each removes outliers, aligns the
+    centroids and scales the source by the ratio of bounding-box diagonals (the paper's protocol for comparison
+    methods)."""
 
     features: FeatureConfig = FeatureConfig()
     ransac: BaselineRansacConfig = BaselineRansacConfig()
     fgr: BaselineFgrConfig = BaselineFgrConfig()
     icp: BaselineIcpConfig = BaselineIcpConfig()
     cpd: BaselineCpdConfig = BaselineCpdConfig()
+    kiss_matcher: BaselineKissConfig = BaselineKissConfig()
     outlier_removal: Literal["statistical", "none"] = Field(
         "statistical", description="clean both clouds first (Open3D remove_statistical_outlier)")
     outlier_neighbours: int = Field(20, ge=2, description="statistical outlier removal: neighbours")
@@ -249,7 +283,7 @@ class Config(_Strict):
     """The whole configuration file."""
 
     seed: int = Field(0, ge=0, description="base seed; each pair's seed derives from it and the pair id")
-    method: Literal["gctr", "icp", "fpfh_ransac", "fgr", "cpd"] = Field(
+    method: MethodName = Field(
         "gctr", description="gctr, or a comparison method configured in the baselines section")
     engine: EngineConfig = EngineConfig()
     baselines: BaselineConfig = BaselineConfig()
@@ -294,6 +328,8 @@ def load_config(path: str | Path | None) -> Config:
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file {p} does not exist")
+    import yaml  # here, not at the top: `gctr register` without -c never reads YAML
+
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as err:
@@ -304,6 +340,8 @@ def load_config(path: str | Path | None) -> Config:
 def config_to_yaml(config: Config) -> str:
     """Serialise a resolved config (all defaults filled in) as YAML."""
     data = config.model_dump(mode="json")
+    import yaml
+
     return yaml.safe_dump(data, sort_keys=False)
 
 

@@ -98,6 +98,59 @@ def test_cpd_recovers_a_similarity(bunny):
     assert 1 < result.iterations <= BaselineConfig().cpd.max_iterations
 
 
+def test_kiss_matcher_recovers_an_arbitrary_similarity(bunny):
+    pytest.importorskip("kiss_matcher")
+    # a large rotation and a scale of 0.6: the global matcher finds the pose, scaled ICP the scale
+    T_gt = _similarity(0.6, 150.0, [-0.3, 1.0, 0.4], [0.2, 0.1, -0.15])
+    source, target = easy_pair(bunny, T_gt, seed=2)
+    result = get_register_fn("kiss_matcher")(source, target, BaselineConfig(), seed=5)
+    _check(result, T_gt, source, target)
+    err = transform_errors(result.transform, T_gt, float(np.linalg.norm(target.max(0) - target.min(0))))
+    # measured with kiss-matcher 1.0.2: 0.25 deg, scale error 0.27 %, translation 0.3 % of the diagonal
+    assert err.rot_err_deg < 0.6 and err.scale_err < 0.006 and err.trans_err_rel < 0.006, err
+    assert {"kiss_matcher", "refine"} <= set(result.timings)
+    # KISS-Matcher itself takes well under a second on these 8000/4000 points
+    assert result.timings["kiss_matcher"] < 2.0
+
+
+def test_kiss_matcher_failures_are_failed_results():
+    pytest.importorskip("kiss_matcher")
+    from gctr_cli.baselines.kiss import register_kiss_matcher
+
+    rng = np.random.default_rng(0)
+    good = rng.normal(size=(3000, 3))
+    cfg = config_from_dict({"baselines": {"outlier_removal": "none"}}).baselines
+    # 20 scattered points: no point has a Faster-PFH descriptor (kiss-matcher 1.0.2 would segfault)
+    r = register_kiss_matcher(rng.normal(size=(20, 3)), good, cfg)
+    assert r.status == "failed" and r.message.startswith("source: only 0 points with a Faster-PFH descriptor"), r
+    # a sphere (every descriptor alike) against a Gaussian blob: KISS-Matcher runs and finds no solution
+    sphere = rng.normal(size=(3000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    r = register_kiss_matcher(sphere, good, cfg)
+    assert r.status == "failed" and r.message == "KISS-Matcher found no valid solution (0 inliers)", r
+    assert r.transform.shape == (4, 4)
+
+
+def test_kiss_matcher_without_the_package_fails_with_a_message(monkeypatch):
+    import sys
+
+    from gctr_cli.baselines.kiss import register_kiss_matcher
+
+    monkeypatch.setitem(sys.modules, "kiss_matcher", None)  # import kiss_matcher -> ImportError
+    rng = np.random.default_rng(0)
+    r = register_kiss_matcher(rng.normal(size=(500, 3)), rng.normal(size=(500, 3)), BaselineConfig())
+    assert r.status == "failed" and "pip install kiss-matcher" in r.message and "GPL" in r.message
+
+
+def test_kiss_matcher_config_limits():
+    cfg = config_from_dict({"method": "kiss_matcher", "baselines": {"kiss_matcher": {"metric_diagonal": 50}}})
+    assert cfg.baselines.kiss_matcher.metric_diagonal == 50.0
+    with pytest.raises(ConfigError, match="5 mm"):
+        config_from_dict({"baselines": {"kiss_matcher": {"metric_diagonal": 0.1}}})
+    with pytest.raises(ConfigError, match="solver_noise_bound_gain"):
+        config_from_dict({"baselines": {"kiss_matcher": {"solver_noise_bound_gain": 2.0}}})
+
+
 def test_cpd_core_exact_on_noise_free_correspondences():
     rng = np.random.default_rng(0)
     Y = rng.normal(size=(300, 3)) * [1.0, 0.6, 0.3]
@@ -150,7 +203,7 @@ def test_fpfh_ransac_is_deterministic(bunny):
 
 # ------------------------------------------------------------------------------------------ config
 def test_method_dispatch_and_config_section():
-    assert METHODS == ("gctr", "icp", "fpfh_ransac", "fgr", "cpd")
+    assert METHODS == ("gctr", "icp", "fpfh_ransac", "fgr", "cpd", "kiss_matcher")
     assert set(REGISTER_FUNCTIONS) == set(BASELINES)
     for name, fn in REGISTER_FUNCTIONS.items():
         assert get_register_fn(name) is fn
@@ -160,6 +213,24 @@ def test_method_dispatch_and_config_section():
     assert method_config(cfg) is cfg.engine
     with pytest.raises(ValueError, match="unknown method"):
         get_register_fn("go_icp")
+
+
+def test_the_registry_is_the_only_list_of_methods():
+    """Config, baselines package and benchmark all derive their method lists from gctr_cli.methods.REGISTRY."""
+    import typing
+
+    from data_scripts import bench_compare
+    from gctr_cli.config import Config as ConfigModel
+    from gctr_cli.methods import REGISTRY
+
+    assert typing.get_args(ConfigModel.model_fields["method"].annotation) == METHODS == tuple(REGISTRY)
+    assert bench_compare.METHODS == METHODS
+    assert set(bench_compare.METHOD_DESCRIPTIONS) == set(METHODS)
+    for name in METHODS:
+        fn = get_register_fn(name)
+        assert fn.__name__ == REGISTRY[name].function and callable(fn)
+    with pytest.raises(ConfigError, match="Input should be 'gctr', .* or 'kiss_matcher'"):
+        config_from_dict({"method": "go_icp"})
 
 
 def test_config_method_and_baselines_section():
@@ -176,7 +247,8 @@ def test_config_method_and_baselines_section():
 def test_config_show_documents_the_baselines_section():
     out = CliRunner().invoke(cli.main, ["config", "show"], catch_exceptions=False).output
     assert "baselines:" in out and "voxel_ratio: 0.02  # voxel size / bbox diagonal" in out
-    assert "one of: gctr, icp, fpfh_ransac, fgr, cpd" in out
+    assert "one of: gctr, icp, fpfh_ransac, fgr, cpd, kiss_matcher" in out
+    assert "kiss_matcher:\n    metric_diagonal: 20.0" in out
     yaml.safe_load(out)
 
 

@@ -98,6 +98,17 @@ def scaled_icp(source: Any, target: Any, T0: np.ndarray, threshold: float, itera
     return np.asarray(result.transformation, dtype=np.float64).copy()
 
 
+def refine_scaled_icp(prep: Prepared, cfg: BaselineConfig, T0: np.ndarray, timer: Timer) -> np.ndarray:
+    """The refinement every global method ends with (fpfh_ransac, fgr, kiss_matcher): scaled ICP from
+    ``T0`` on both normalised clouds voxel-downsampled at ``icp.voxel_ratio``, distance
+    ``icp.refine_threshold_ratio``, at most ``icp.iterations`` iterations."""
+    src = voxel_down(to_o3d(prep.src.points), cfg.icp.voxel_ratio, "source")
+    tgt = voxel_down(to_o3d(prep.tgt.points), cfg.icp.voxel_ratio, "target")
+    T = scaled_icp(src, tgt, T0, cfg.icp.refine_threshold_ratio, cfg.icp.iterations)
+    timer.lap("refine")
+    return T
+
+
 # ---------------------------------------------------------------------------------------------- result
 @dataclass
 class Timer:

@@ -18,8 +18,8 @@ from gctr_cli.baselines.common import (
     BaselineFailure,
     Timer,
     open3d_deterministic,
+    refine_scaled_icp,
     run_guarded,
-    scaled_icp,
     to_o3d,
     voxel_down,
 )
@@ -46,14 +46,6 @@ def _features(prep, cfg: BaselineConfig) -> tuple[Any, Any, Any, Any, float]:
     return out[0], out[2], out[1], out[3], voxel
 
 
-def _refine(prep, cfg: BaselineConfig, T0: np.ndarray, timer: Timer) -> np.ndarray:
-    src = voxel_down(to_o3d(prep.src.points), cfg.icp.voxel_ratio, "source")
-    tgt = voxel_down(to_o3d(prep.tgt.points), cfg.icp.voxel_ratio, "target")
-    T = scaled_icp(src, tgt, T0, cfg.icp.refine_threshold_ratio, cfg.icp.iterations)
-    timer.lap("refine")
-    return T
-
-
 def _fpfh_ransac(prep, cfg: BaselineConfig, seed: int, timer: Timer) -> tuple[np.ndarray, int]:
     o3d = open3d_deterministic(seed)
     reg = o3d.pipelines.registration
@@ -71,7 +63,7 @@ def _fpfh_ransac(prep, cfg: BaselineConfig, seed: int, timer: Timer) -> tuple[np
     timer.lap("ransac")
     if len(result.correspondence_set) < 3:
         raise BaselineFailure("RANSAC found no hypothesis passing the checkers")
-    return _refine(prep, cfg, np.asarray(result.transformation), timer), 0
+    return refine_scaled_icp(prep, cfg, np.asarray(result.transformation), timer), 0
 
 
 def _fgr(prep, cfg: BaselineConfig, seed: int, timer: Timer) -> tuple[np.ndarray, int]:
@@ -88,7 +80,7 @@ def _fgr(prep, cfg: BaselineConfig, seed: int, timer: Timer) -> tuple[np.ndarray
     T0 = np.asarray(result.transformation)
     if not np.all(np.isfinite(T0)):
         raise BaselineFailure("FGR returned a non-finite transform")
-    return _refine(prep, cfg, T0, timer), 0
+    return refine_scaled_icp(prep, cfg, T0, timer), 0
 
 
 def register_fpfh_ransac(source: np.ndarray, target: np.ndarray, cfg: BaselineConfig | None = None,

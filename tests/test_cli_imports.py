@@ -1,0 +1,74 @@
+"""What the ``gctr register`` and ``gctr --help`` processes import (issue 10 item 3: process overhead).
+
+Each check runs the real command in a fresh interpreter and lists ``sys.modules`` afterwards: ``gctr
+register`` must not load the batch machinery, the report/plotting code, Open3D or the comparison
+methods; ``gctr --help`` must not even load numpy or pydantic.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from conftest import REPO, write_cloud
+
+#: never needed to register one pair with the GCTR engine (the default method)
+NOT_FOR_REGISTER = ("open3d", "dask", "distributed", "matplotlib", "tqdm", "pandas", "yaml", "gctr_cli.batch",
+                    "gctr_cli.report", "gctr_cli.summary", "gctr_cli.snapshots", "gctr_cli.pool",
+                    "gctr_cli.dask_executor", "gctr_cli.baselines")
+NOT_FOR_HELP = ("numpy", "scipy", "pydantic", "yaml", "gctr_cli.config", "gctr_cli.io", "gctr_cli.engine")
+
+
+def _modules_after(argv: list[str], tmp_path) -> tuple[int, set[str]]:
+    script = textwrap.dedent(f"""
+        import json, sys
+        from gctr_cli.cli import main
+        sys.argv = ["gctr", *{argv!r}]
+        try:
+            main()
+            code = 0
+        except SystemExit as exc:
+            code = exc.code or 0
+        print("\\n@@" + json.dumps({{"code": code, "modules": sorted(sys.modules)}}))
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300,
+                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    assert "@@" in out.stdout, out.stderr[-3000:]
+    data = json.loads(out.stdout.rsplit("@@", 1)[1])
+    return data["code"], set(data["modules"])
+
+
+def _loaded(modules: set[str], names: tuple[str, ...]) -> list[str]:
+    return sorted(m for m in modules if any(m == n or m.startswith(n + ".") for n in names))
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pair")
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(3000, 3)) * [1.0, 0.6, 0.3]
+    write_cloud(folder / "a.ply", pts)
+    write_cloud(folder / "b.ply", pts * 2.0 + [1.0, 0.0, 0.5])
+    return folder
+
+
+def test_register_imports_only_what_it_uses(pair, tmp_path):
+    code, modules = _modules_after(["register", str(pair / "a.ply"), str(pair / "b.ply"), "-o", str(tmp_path / "m.txt")],
+                                   tmp_path)
+    assert code in (0, 1)  # the registration's outcome does not matter here, the import set does
+    assert "gctr_cli.engine" in modules and "gctr_cli.pair" in modules  # it did run the engine
+    assert _loaded(modules, NOT_FOR_REGISTER) == []
+
+
+def test_help_is_light(tmp_path):
+    code, modules = _modules_after(["--help"], tmp_path)
+    assert code == 0
+    assert _loaded(modules, NOT_FOR_HELP) == []
+    code, modules = _modules_after(["register", "--help"], tmp_path)
+    assert code == 0
+    assert _loaded(modules, NOT_FOR_HELP) == []
