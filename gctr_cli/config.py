@@ -91,6 +91,7 @@ class OuterLoopConfig(_Strict):
     tol: float = Field(0.002, gt=0, description="stop when salient points move less (RMS, / diameter)")
     settle_support: int = Field(2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
     settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
+    settle_alone: float = Field(0.7, ge=0, le=1, description="stop after a single hypothesis whose surface agreement reaches this; 1 = never")
 
 
 class RefineConfig(_Strict):

@@ -391,8 +391,12 @@ def _decide(candidates: list[_Candidate], src: _Prepared, src_fine: _Fine, tgt_f
 def _settled(best: _Candidate, candidates: list[_Candidate], src: _Prepared, cfg: EngineConfig) -> bool:
     """The search can stop early when independent overlap hypotheses already ended at the same,
     well-supported transform (``outer.settle_support`` of them, agreement at least
-    ``outer.settle_agreement``); the remaining hypotheses would only cost time."""
+    ``outer.settle_agreement``), or when one hypothesis alone explains so much of both clouds
+    (``outer.settle_alone``) that no wrong alignment in the benchmarks came near it; the
+    remaining hypotheses would only cost time."""
     o = cfg.outer
+    if best.agreement.score >= o.settle_alone:
+        return True
     if o.settle_support <= 0 or best.agreement.score < o.settle_agreement:
         return False
     same = sum(displacement(best.transform, c.transform, src.surface.sample) <= cfg.verdict.distinct_ratio
