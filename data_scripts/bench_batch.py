@@ -103,7 +103,7 @@ class RssSampler:
         while not self._stop.wait(self.period_s):
             self.samples.append((self._rows(), self.rss_mib()))
 
-    def __enter__(self) -> "RssSampler":
+    def __enter__(self) -> RssSampler:
         self._thread.start()
         return self
 

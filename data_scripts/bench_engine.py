@@ -64,7 +64,7 @@ import sys
 import time
 import traceback
 from collections import deque
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -304,7 +304,7 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
                     if progress:
                         _print_progress(n_done, len(tasks), rows[i])
     finally:
-        for reader, (_, proc, _) in running.items():
+        for _, proc, _ in running.values():
             proc.kill()
             proc.join()
         for v, value in saved.items():
@@ -317,7 +317,8 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
 
 def _print_progress(done: int, total: int, row: dict[str, Any]) -> None:
     if row.get("status") in ("ok", "failed"):
-        detail = (f"{row['status']:6s} {'success' if row['success'] else 'FAIL   '} {row['time_s']:6.2f} s (cpu {row['cpu_s']:5.2f})  "
+        verdict = "success" if row["success"] else "FAIL   "
+        detail = (f"{row['status']:6s} {verdict} {row['time_s']:6.2f} s (cpu {row['cpu_s']:5.2f})  "
                   f"rot {row['rot_err_deg']:.3g} deg  trans {row['trans_err_rel']:.3g}  scale {row['scale_err']:.3g}  "
                   f"peak {row['peak_rss_mb']:.0f} MB")
     else:
@@ -570,17 +571,18 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
         "machine and is far less sensitive to other processes competing for the cores).",
         "",
         "| level | pairs | models | points src / tgt (median) | success | median rot err (°) | median trans err (rel) "
-        "| median scale err | median TM err | median log(TM) | median time (s) | p90 time (s) | median CPU time (s) | max peak mem (MB) |",
+        "| median scale err | median TM err | median log(TM) | median time (s) | p90 time (s) | median CPU time (s) "
+        "| max peak mem (MB) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     stats = {lv: _level_stats(rs) for lv, rs in groups}
-    for lv, rs in groups:
+    for lv, _ in groups:
         st = stats[lv]
         out.append(
             f"| {lv} | {st['pairs']} | {st['models']} | {_num(st['n_src'], '.0f')} / {_num(st['n_tgt'], '.0f')} "
             f"| {_rate(st['success'], st['pairs'])} | {_num(st['rot'])} | {_num(st['trans'])} | {_num(st['scale'])} "
-            f"| {_num(st['tm'])} | {_num(st['logtm'], '.2f')} | {_num(st['t_med'], '.2f')} | {_num(st['t_p90'], '.2f')} "
-            f"| {_num(st['cpu_med'], '.2f')} | {_num(st['mem'], '.0f')} |"
+            f"| {_num(st['tm'])} | {_num(st['logtm'], '.2f')} | {_num(st['t_med'], '.2f')} "
+            f"| {_num(st['t_p90'], '.2f')} | {_num(st['cpu_med'], '.2f')} | {_num(st['mem'], '.0f')} |"
         )
     out += ["", "### Memory", "",
             "| level | median baseline RSS before loading (MB) | max peak RSS (MB) | max increment over baseline (MB) "
@@ -638,8 +640,8 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
         for r in failed:
             msg = (r.get("message") or "").replace("|", "\\|") or "(status ok, errors above the thresholds)"
             out.append(f"| {r['pair_id']} | {r['level']} | {r.get('status')} | {_num(r.get('rot_err_deg'))} "
-                       f"| {_num(r.get('trans_err_rel'))} | {_num(r.get('scale_err'))} | {_num(r.get('time_s'), '.2f')} "
-                       f"| {msg} |")
+                       f"| {_num(r.get('trans_err_rel'))} | {_num(r.get('scale_err'))} "
+                       f"| {_num(r.get('time_s'), '.2f')} | {msg} |")
     out += ["", SECTION_END, ""]
     return "\n".join(out)
 
@@ -831,7 +833,8 @@ def code_state() -> str:
         return "not a git checkout"
     if not dirty:
         return f"git `{head}`, engine and configs unmodified"
-    names = ", ".join(f"`{line[3:]}`" for line in dirty[:8]) + (f", … ({len(dirty) - 8} more)" if len(dirty) > 8 else "")
+    more = f", … ({len(dirty) - 8} more)" if len(dirty) > 8 else ""
+    names = ", ".join(f"`{line[3:]}`" for line in dirty[:8]) + more
     return f"git `{head}` plus uncommitted changes in {names}"
 
 
@@ -897,7 +900,8 @@ def main(argv: list[str] | None = None) -> int:
     plot_name = "confidence_tradeoff.png" if args.variant == "default" else f"confidence_tradeoff_{args.variant}.png"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     plot_confidence_tradeoff({"gctr": confidence_sweep(rows)}, args.out.parent / plot_name,
-                             config.engine.min_confidence, f"gctr, variant {args.variant}: confidence threshold trade-off")
+                             config.engine.min_confidence,
+                             f"gctr, variant {args.variant}: confidence threshold trade-off")
 
     def shown(p: Path) -> str:
         p = Path(p).resolve()
@@ -909,7 +913,7 @@ def main(argv: list[str] | None = None) -> int:
     resolved = "\n".join(f"{k}={v}" for k, v in sorted(flatten_dict(config_dict).items()))
     info = {
         "variant": args.variant,
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "command": "python -m data_scripts.bench_engine" + (" " + shlex.join(argv_used) if argv_used else ""),
         "machine": machine_info(),
         "load_before": load_before,

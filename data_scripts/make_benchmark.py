@@ -769,7 +769,8 @@ def prepare_shipped_data(shared_dir: str | Path, out_dir: str | Path) -> dict[st
 
     kitchen = read_points(shared / "real/3dmatch_redkitchen/cloud_bin_0.ply")
     kitchen, voxel = voxel_downsample_to_count(kitchen, SHIP_MODEL_POINTS)
-    save("models/redkitchen.ply", kitchen, f"3DMatch 7-scenes-redkitchen cloud_bin_0, voxel {voxel:.6g} m; non-commercial research use")
+    save("models/redkitchen.ply", kitchen,
+         f"3DMatch 7-scenes-redkitchen cloud_bin_0, voxel {voxel:.6g} m; non-commercial research use")
 
     scan_dir = shared / "stanford/bunny/scans"
     bposes = read_pose_file(scan_dir / "bun_poses_world_from_scan.txt")
@@ -782,7 +783,8 @@ def prepare_shipped_data(shared_dir: str | Path, out_dir: str | Path) -> dict[st
     ]
     for name in SHIP_SCANS:
         pts, voxel = voxel_downsample_to_count(read_points(scan_dir / f"{name}.ply"), SHIP_SCAN_POINTS)
-        save(f"scans/{name}.ply", pts, f"{credit}\nraw range scan {name}.ply in its own scanner frame, voxel {voxel:.6g} m")
+        save(f"scans/{name}.ply", pts,
+             f"{credit}\nraw range scan {name}.ply in its own scanner frame, voxel {voxel:.6g} m")
         lines.append(f"{name}.ply")
         lines += [" ".join(repr(float(v)) for v in row) for row in bposes[name]]
     (out / "scans" / "poses.txt").write_text("\n".join(lines) + "\n")

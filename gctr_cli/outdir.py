@@ -266,7 +266,7 @@ class Outputs:
             logger.warning("pair %s: %s", outcome.pair_id, w)  # gctr's own are in the message too
         try:
             self._write(outcome)
-        except Exception as exc:  # noqa: BLE001 - one pair's outputs must never end the batch
+        except Exception as exc:  # one pair's outputs must never end the batch
             logger.debug("pair %s: cannot write its outputs", outcome.pair_id, exc_info=True)
             failed = failed_outcome(
                 outcome, outcome.seed, f"cannot write its outputs: {_problem(exc)}", "output", outcome.runtime_s,
@@ -274,7 +274,7 @@ class Outputs:
             )
             try:
                 self._write(failed)
-            except Exception as exc2:  # noqa: BLE001
+            except Exception as exc2:
                 raise BatchError(
                     f"cannot record pair {outcome.pair_id!r} in {self.transforms.path}: {exc_message(exc2)}; the "
                     "pairs finished so far are saved: fix the problem, then rerun with --resume"

@@ -93,12 +93,13 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     startup_error = None
     register_fn = None
     try:
-        import gctr_cli.io  # noqa: F401 - load everything a pair needs before the first pair
+        import gctr_cli.io  # load everything a pair needs before the first pair
 
         if snapshots:
-            import gctr_cli.snapshots  # noqa: F401
-            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.backends.backend_agg
             import matplotlib.figure  # noqa: F401
+
+            import gctr_cli.snapshots  # noqa: F401
         register_fn = resolve_register_fn(register_ref, config)
     except BaseException as exc:  # noqa: BLE001
         startup_error = f"worker start-up failed: {exc_message(exc)}"

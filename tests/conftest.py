@@ -191,13 +191,18 @@ def fast_config():
     return config_from_dict({"seed": 7, "batch": {"workers": 2, "time_limit_s": 30}})
 
 
-@pytest.fixture
-def subprocess_env():
+def make_subprocess_env() -> dict[str, str]:
     """Environment for ``python -m gctr_cli`` / driver subprocesses: the tests folder importable."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(TESTS_DIR), str(REPO)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS_DIR), str(REPO), *filter(None, [env.get("PYTHONPATH")])])
     env.pop("COLUMNS", None)
     return env
+
+
+@pytest.fixture
+def subprocess_env():
+    """:func:`make_subprocess_env` for one test."""
+    return make_subprocess_env()
 
 
 PYTHON = sys.executable

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner
+from conftest import REPO, read_csv, row_matrix, write_cloud, write_manifest_rows
 from scipy.spatial.transform import Rotation
 
-from conftest import REPO, read_csv, row_matrix, write_cloud, write_manifest_rows
 from gctr_cli import cli
 from gctr_cli.baselines import REGISTER_FUNCTIONS, register_fpfh_ransac
 from gctr_cli.baselines.common import box_normalise
-from gctr_cli.engine.preprocess import denormalise
 from gctr_cli.baselines.cpd import cpd_rigid
 from gctr_cli.config import BaselineConfig, Config, ConfigError, config_from_dict
+from gctr_cli.engine.preprocess import denormalise
 from gctr_cli.io import load_point_cloud
 from gctr_cli.methods import BASELINES, METHODS, get_register_fn, method_config
 from gctr_cli.metrics import decompose_similarity, is_similarity, transform_errors
@@ -167,9 +167,9 @@ def test_config_method_and_baselines_section():
     assert cfg.method == "cpd" and cfg.baselines.cpd.w == 0.3 and cfg.baselines.cpd.max_points == 500
     with pytest.raises(ConfigError, match="method"):
         config_from_dict({"method": "super4pcs"})
-    with pytest.raises(ConfigError, match="baselines.ransac.iters: unknown key"):
+    with pytest.raises(ConfigError, match=r"baselines\.ransac\.iters: unknown key"):
         config_from_dict({"baselines": {"ransac": {"iters": 5}}})
-    with pytest.raises(ConfigError, match="baselines.cpd.w"):
+    with pytest.raises(ConfigError, match=r"baselines\.cpd\.w"):
         config_from_dict({"baselines": {"cpd": {"w": 1.0}}})
 
 

@@ -14,11 +14,11 @@ import textwrap
 import time
 from pathlib import Path
 
+import fake_engine
 import numpy as np
 import pytest
-
-import fake_engine
 from conftest import PYTHON, read_csv, row_matrix, write_cloud
+
 from gctr_cli import batch
 from gctr_cli.batch import (
     ERRORS_COLUMNS,

@@ -142,7 +142,8 @@ def test_quick_keeps_first_three_pairs_per_model_and_level(tmp_path):
     mb.write_manifest(tmp_path / "pairs.csv", rows)
     config, d = be.resolve_config(None, [])
     tasks = be.load_tasks(tmp_path / "pairs.csv", ["hard", "cross"], True, config, d)
-    assert [t["pair_id"] for t in tasks] == [f"{lv}_{m}_{k}" for lv in ("hard", "cross") for m in "ab" for k in range(3)]
+    assert [t["pair_id"] for t in tasks] == [f"{lv}_{m}_{k}" for lv in ("hard", "cross") for m in "ab"
+                                             for k in range(3)]
     assert len({t["seed"] for t in tasks}) == len(tasks)
     assert len(be.load_tasks(tmp_path / "pairs.csv", ["cross"], False, config, d)) == 10
     with pytest.raises(be.BenchError, match="no pairs for level"):
@@ -172,7 +173,8 @@ def test_stage_table_and_failed_list_render():
     assert "| other | 0.300 (15%) |" in text and "| **total** | 2.000 (100%) |" in text
     assert "| refine |" not in text  # a stage that never ran is left out
     assert re.search(r"\| p2 \| cross \| failed \| 90 \| 1 \| 0\.5 \| 3\.00 \| too weak \\\| evidence \|", text)
-    assert "other processes were running, but the pairs were not starved of CPU (median wall/CPU time ratio 1.07)" in text
+    assert ("other processes were running, but the pairs were not starved of CPU "
+            "(median wall/CPU time ratio 1.07)") in text
     rows[1]["time_s"] = 6.0  # wall twice the CPU time: contention
     assert "they took CPU from the benchmark" in be.render_section(rows, ["cross"], info)
 

@@ -12,12 +12,11 @@ import subprocess
 import textwrap
 from pathlib import Path
 
+import fake_engine
 import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner
-
-import fake_engine
 from conftest import (
     PYTHON,
     REPO,
@@ -30,6 +29,7 @@ from conftest import (
     write_cloud,
     write_manifest_rows,
 )
+
 from gctr_cli import batch, cli
 from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
 from gctr_cli.config import Config, config_from_dict
@@ -386,7 +386,7 @@ def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, 
             assert proc.poll() is None, proc.communicate()
             time.sleep(0.02)
         proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=30)
+        _stdout, stderr = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -452,7 +452,7 @@ def _real_pairs(root: Path) -> tuple[Path, dict[str, np.ndarray]]:
 
 @pytest.mark.engine
 def test_real_engine_batch_end_to_end(tmp_path, subprocess_env):
-    manifest, gts = _real_pairs(tmp_path / "data")
+    manifest, _gts = _real_pairs(tmp_path / "data")
     out2 = gctr("batch", manifest, "-o", tmp_path / "j2", "-j", 2, "--min-success", 0.75, env=subprocess_env)
     assert out2.returncode == 0, out2.stdout + out2.stderr
     assert "pairs: 4 (4 ok, 0 failed)" in out2.stdout

@@ -20,6 +20,7 @@ distributed = pytest.importorskip("distributed")
 
 import fake_engine  # noqa: E402
 from conftest import apply, bumpy_surface, read_csv, rotation, similarity, write_cloud, write_manifest_rows  # noqa: E402
+
 from gctr_cli import batch, cli, dask_executor  # noqa: E402
 from gctr_cli.batch import BatchError, derive_seed, run_batch  # noqa: E402
 from gctr_cli.config import config_from_dict  # noqa: E402
@@ -88,7 +89,8 @@ def test_dask_matches_the_local_pool_and_reports_failures(four_pairs, fast_confi
     assert d_errs == l_errs and d_mats == l_mats
     assert d_rows["raises"]["message"] == "ValueError: degenerate input: the source cloud is planar"
     assert d_rows["missing"]["message"].endswith("nope.ply: file does not exist")
-    assert d_rows["nan_pts"]["message"].startswith("warning: ") and "dropped 2 of 202 points" in d_rows["nan_pts"]["message"]
+    nan_message = d_rows["nan_pts"]["message"]
+    assert nan_message.startswith("warning: ") and "dropped 2 of 202 points" in nan_message
     assert (summary.n_ok, summary.n_failed) == (9, 3)
     assert (tmp_path / "dask" / "report.html").exists()
     assert not (tmp_path / "dask" / batch.LOCK_NAME).exists()

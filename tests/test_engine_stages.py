@@ -67,7 +67,7 @@ def rot_err_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
     return rotation_angle_deg(R_est.T @ R_true)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _bunny() -> np.ndarray:
     return load_point_cloud(MODELS / "bunny.ply")
 
@@ -251,7 +251,7 @@ def test_power_iteration_recovers_planted_permutation(seed):
 
 
 def test_first_order_term_alone_and_sparsity():
-    rng, S, Q, truth, (s, R, t) = _planted_problem(5, noise=0.0)
+    _rng, S, Q, truth, (s, R, t) = _planted_problem(5, noise=0.0)
     H1 = build_first_order(s * S @ R.T + t, Q, sigma=0.01 * s, radius_factor=3.0)
     i, j = H1.index // len(Q), H1.index % len(Q)
     # the true pairs are at distance 0 → value 1
@@ -395,7 +395,7 @@ def test_ransac_half_outliers(seed):
 
 
 def test_ransac_scale_bounds_exclude_hypotheses():
-    rng, S, Q, (s, R, t), thr = _ransac_problem(0)
+    rng, S, Q, (s, _R, _t), thr = _ransac_problem(0)
     samples = np.array([rng.choice(60, 3, replace=False) for _ in range(400)])
     for bounds in ((0.01, s / 1.25), (1.25 * s, 100.0)):
         hyp = ransac_hypotheses(S, Q, samples, samples, thr, scale_bounds=bounds, keep=400)
@@ -521,7 +521,8 @@ def test_validate_cloud_errors():
         validate_cloud(line, "tgt")
     plane = np.column_stack([rng.uniform(-1, 1, (200, 2)), np.zeros(200)]) @ Rotation.random(
         random_state=rng).as_matrix().T
-    with pytest.raises(DegenerateCloudError, match=r"^src: points are planar \(thickness .* of the extent; registration would be ambiguous\)$"):
+    planar = r"^src: points are planar \(thickness .* of the extent; registration would be ambiguous\)$"
+    with pytest.raises(DegenerateCloudError, match=planar):
         validate_cloud(plane, "src")
     with pytest.raises(DegenerateCloudError, match=r"^src: only 5 finite points \(need at least 10\)$"):
         validate_cloud(rng.normal(size=(5, 3)), "src")

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
 from conftest import REPO, apply, rotation, similarity
+
 from gctr_cli import cli
 from gctr_cli.io import (
     SUPPORTED_EXTENSIONS,
@@ -72,7 +72,7 @@ def test_las_laz_keep_utm_coordinates_exactly_and_attributes(tmp_path, name, ver
 
 
 def test_las_truncated_and_lying_headers_are_refused_before_allocating(tmp_path):
-    expected, _ = utm_las(tmp_path / "ok.las", n=500)
+    _expected, _ = utm_las(tmp_path / "ok.las", n=500)
     data = (tmp_path / "ok.las").read_bytes()
     (tmp_path / "cut.las").write_bytes(data[: len(data) - 100])
     with pytest.raises(PointCloudError, match=r"cut\.las: truncated: the header declares 500 points"):
@@ -297,6 +297,7 @@ def test_register_laz_onto_e57_writes_the_aligned_cloud(tmp_path):
 
 def test_register_aligned_with_unwritable_extension_fails_before_registering(tmp_path, monkeypatch):
     import fake_engine
+
     import gctr_cli.engine
 
     monkeypatch.setattr(gctr_cli.engine, "register", fake_engine.register)

@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import PYTHON, REPO, apply, read_csv, rotation, row_matrix, similarity, write_manifest_rows
+
 from gctr_cli import io as gio
-from gctr_cli.io import text as _text_module  # noqa: F401 - gio.text for monkeypatching
 from gctr_cli.batch import ERRORS_COLUMNS, LOCK_NAME, MATRIX_COLUMNS, TRANSFORMS_COLUMNS, derive_seed
 from gctr_cli.config import Config
 from gctr_cli.io import PointCloudError, load_point_cloud, read_matrix, save_point_cloud, write_matrix
+from gctr_cli.io import text as _text_module  # noqa: F401 - gio.text for monkeypatching
 from gctr_cli.metrics import decompose_similarity, rotation_angle_deg
 
 BUNNY = REPO / "data" / "models" / "bunny.ply"
@@ -165,7 +165,7 @@ def build_mixed(root: Path) -> Mixed:
     save_point_cloud(bad / "two.pcd", src1[:2])
     add_bad("two_points", bad / "two.pcd", ("too few points", "only 2 finite points"), as_target=True)
 
-    s2, t2 = add_good("good_xyz_ply", src2, tgt2, T2, (".xyz", ".ply"))
+    _s2, t2 = add_good("good_xyz_ply", src2, tgt2, T2, (".xyz", ".ply"))
     nan_src = good / "nan_few_src.xyz"
     save_point_cloud(nan_src, src2_nan)
     add("nan_few", nan_src, t2, root / "gt" / "good_xyz_ply.txt")
@@ -333,7 +333,7 @@ def test_planar_cloud_message_names_the_file(mixed):
 
 @pytest.mark.engine
 def test_nearly_planar_clouds_fail_instead_of_returning_a_wrong_transform(mixed):
-    m, out, _, _ = mixed
+    _m, out, _, _ = mixed
     r = by_id(read_csv(out / "transforms.csv")[1])["nearly_planar"]
     assert r["status"] == "failed" and "planar" in r["message"], (r["status"], r["message"], r["m00"])
 
@@ -528,7 +528,8 @@ def test_two_million_points_register_within_2_gb_per_worker(tmp_path):
     # 2 M lines of text with colour columns (a typical LiDAR export), built from a repeated block
     block = base[rng.choice(len(base), 10_000, replace=False)] + rng.normal(scale=0.001 * diag, size=(10_000, 3))
     colours = rng.integers(0, 256, size=(10_000, 3))
-    text = "".join(f"{x:.6f} {y:.6f} {z:.6f} {r} {g} {b}\n" for (x, y, z), (r, g, b) in zip(block.tolist(), colours.tolist()))
+    text = "".join(f"{x:.6f} {y:.6f} {z:.6f} {r} {g} {b}\n"
+                   for (x, y, z), (r, g, b) in zip(block.tolist(), colours.tolist()))
     (tmp_path / "big.xyz").write_bytes(text.encode() * (n // 10_000))
 
     rows = [{"pair_id": "big_ply", "source": "big.ply", "target": "target.ply", "gt": "gt.txt"},

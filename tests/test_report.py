@@ -9,11 +9,11 @@ import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
 
+import fake_engine
 import pytest
 from click.testing import CliRunner
-
-import fake_engine
 from conftest import read_csv
+
 from gctr_cli import batch, cli
 from gctr_cli.batch import run_batch
 from gctr_cli.report import COLUMNS, render_report

@@ -7,12 +7,12 @@ import logging
 import subprocess
 import textwrap
 
+import fake_engine
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
-import fake_engine
 from conftest import PYTHON, apply, bumpy_surface, read_csv, rotation, similarity, write_cloud
+
 from gctr_cli import batch, cli, outcome, snapshots
 from gctr_cli.batch import run_batch, run_pair
 from gctr_cli.io import write_matrix

@@ -21,7 +21,7 @@ from gctr_cli.io.cloud import PointCloud
 from gctr_cli.io.errors import PointCloudError, quote
 from gctr_cli.io.lines import LineReader, parse_float, read_rows
 
-__all__ = ["read_ply", "write_ply"]
+__all__ = ["ply_bytes", "read_ply"]
 
 MAX_HEADER_BYTES = 1 << 20
 MAX_HEADER_LINE = 1 << 16
@@ -142,7 +142,7 @@ def _parse_header(fh, path: Path) -> tuple[str, list[_Element], int]:
         if key in ("comment", "obj_info"):
             continue
 
-        def bad(what: str) -> PointCloudError:
+        def bad(what: str, lineno: int = lineno) -> PointCloudError:
             return PointCloudError(f"{path}: PLY header line {lineno}: {what}")
 
         if key == "format":
@@ -228,7 +228,8 @@ def _ascii_list_element(reader: LineReader, el: _Element, want: tuple[str, ...])
                 if p.name in out:
                     v = parse_float(toks[pos])
                     if v is None:
-                        raise PointCloudError(f"{path}: line {lineno}: non-numeric value {quote(toks[pos])} in {quote(el.name)}")
+                        raise PointCloudError(
+                            f"{path}: line {lineno}: non-numeric value {quote(toks[pos])} in {quote(el.name)}")
                     out[p.name][r] = v
                 pos += 1
                 continue
