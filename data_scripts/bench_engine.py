@@ -266,7 +266,7 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
         os.environ[v] = "1"
     rows: dict[int, dict[str, Any]] = {}
     pending = deque(enumerate(tasks))
-    running: dict[Any, tuple[int, Any, float]] = {}
+    running: dict[Any, tuple[int, Any, float]] = {}  # reader connection -> (task index, process, start)
     n_done = 0
     try:
         while pending or running:
@@ -278,7 +278,8 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
                 proc.start()
                 writer.close()
                 running[reader] = (i, proc, time.monotonic())
-            for reader in wait(list(running), timeout=1.0):
+            ready: list[Any] = wait(list(running), timeout=1.0)
+            for reader in ready:
                 i, proc, _ = running.pop(reader)
                 try:
                     row = reader.recv()
@@ -498,7 +499,7 @@ def _quantile(xs: list[float], q: float) -> float:
     return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
 
 
-def _num(x: float, spec: str = ".3g") -> str:
+def _num(x: float | None, spec: str = ".3g") -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "–"
     return format(x, spec)
@@ -662,7 +663,7 @@ def render_verdicts(rows: list[dict[str, Any]], levels: list[str], info: dict[st
             f"({100.0 * silent / n_all if n_all else 0:.1f}%)**.", ""]
 
     sweep = confidence_sweep(rows, CONFIDENCE_THRESHOLDS)
-    confs = [r.get("confidence") for r in rows if isinstance(r.get("confidence"), float)]
+    confs = [r["confidence"] for r in rows if isinstance(r.get("confidence"), float)]
     has_conf = any(not math.isnan(c) for c in confs)
     out += ["### Confidence threshold trade-off", "",
             f"Configured threshold `engine.min_confidence` = {_num(configured, 'g')}. Offline sweep over all pairs: "

@@ -167,7 +167,7 @@ def voxel_downsample_to_count(points: np.ndarray, target: int, iterations: int =
         return points.copy(), 0.0
     diag = bbox_diagonal(points)
     lo, hi = diag * 1e-5, diag * 0.5  # lo gives (nearly) all points, hi very few
-    best = None
+    best: tuple[int, float] | None = None
     for _ in range(iterations):
         mid = np.sqrt(lo * hi)
         n = len(voxel_downsample(points, mid))
@@ -179,6 +179,7 @@ def voxel_downsample_to_count(points: np.ndarray, target: int, iterations: int =
             lo = mid
         else:
             hi = mid
+    assert best is not None  # iterations >= 1
     voxel = float(best[1])
     return voxel_downsample(points, voxel), voxel
 

@@ -530,7 +530,7 @@ def generate_special(models: dict[str, np.ndarray], levels: list[str], pairs_per
     """
     combined = []
     for level_name in [lv for lv in levels if lv in SPECIAL_LEVELS]:
-        rows = []
+        rows: list[dict] = []
         for model_name, model in models.items():
             for k in range(pairs_per_model):
                 rng = pair_rng(seed, level_name, model_name, k)
@@ -551,12 +551,12 @@ def generate_special(models: dict[str, np.ndarray], levels: list[str], pairs_per
 
 
 def generate_scene(scenes: dict[str, np.ndarray], T_4to0: np.ndarray, seed: int, out: Path, formats: list[str],
-                   n_source: int = 20000, windows_per_scene: int = SCENE["windows_per_scene"],
-                   real_pairs: int = SCENE["real_pairs"], pcd_encoding: str = "binary") -> list[dict]:
+                   n_source: int = 20000, windows_per_scene: int = int(SCENE["windows_per_scene"]),
+                   real_pairs: int = int(SCENE["real_pairs"]), pcd_encoding: str = "binary") -> list[dict]:
     """Level ``scene``: ``windows_per_scene`` window pairs per scene + ``real_pairs`` draws of the real
     3DMatch redkitchen pair (source fragment 0 moved by a random similarity, target fragment 4 at 1/4-1/2
     density, truth ``inv(T_4to0) @ inv(A)``)."""
-    rows = []
+    rows: list[dict] = []
     for name, scene in scenes.items():
         for k in range(windows_per_scene):
             pair = make_scene_window_pair(scene, pair_rng(seed, "scene", name, k), n_source, SCENE_UP.get(name))
@@ -624,7 +624,7 @@ def generate_synthetic(
     combined = []
     for level_name in levels:
         level = LEVELS[level_name]
-        rows = []
+        rows: list[dict] = []
         for model_name, model in models.items():
             for k in range(pairs_per_model):
                 pair = make_pair(model, level, pair_rng(seed, level_name, model_name, k), n_source)
@@ -713,7 +713,7 @@ def generate_real_all(scans: dict, poses: dict, dragon_scans: dict, dragon_poses
             if seen[job[2]] <= per_group:
                 kept.append(job)
         jobs = kept
-    rows = []
+    rows: list[dict] = []
     for rng, pid, model, src, tgt, pose_s, pose_t in jobs:
         pair = make_real_pair(src, tgt, pose_s, pose_t, rng, n_source)
         row = write_pair(out / "real", pid, pair, formats[len(rows) % len(formats)], pcd_encoding)
@@ -872,6 +872,7 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
         if real_full_res and shared is None:
             raise click.UsageError("--real-full-res needs --shared")
         recon = read_points(DATA_DIR / "models" / "bunny.ply")
+        assert dragon is not None
         rows += generate_real_all(*load_scans(shared=shared if real_full_res else None), *dragon, recon, seed, out,
                                   fmts, n_source, pcd_encoding=pcd_encoding, per_group=real_per_group)
     rows += generate_special(loaded, special, pairs_per_model, seed, out, fmts, n_source, pcd_encoding)

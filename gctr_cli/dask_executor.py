@@ -137,7 +137,7 @@ def _single_threaded() -> Iterator[None]:
         yield
 
 
-class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
+class GctrWorkerSetup(_WorkerPluginBase):
     """Worker plugin: prepares every worker, including those that join or restart later.
 
     Caps native thread pools to one thread (environment variables for pools not yet created,
@@ -322,15 +322,15 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
         return outcome
     if status == "error":
         try:
-            exc = future.exception()
+            error = future.exception()
         except OSError:
             raise
         except Exception as err:  # noqa: BLE001
-            exc = err
-        if isinstance(exc, KilledWorker):
-            return failed_outcome(job.spec, job.seed, _killed_message(exc), "worker", job.runtime())
-        return failed_outcome(job.spec, job.seed, f"task failed on its dask worker: {exc_message(exc)}", "worker",
-                       job.runtime())
+            error = err
+        if isinstance(error, KilledWorker):
+            return failed_outcome(job.spec, job.seed, _killed_message(error), "worker", job.runtime())
+        return failed_outcome(job.spec, job.seed, f"task failed on its dask worker: {exc_message(error)}", "worker",
+                              job.runtime())
     return failed_outcome(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
 
 

@@ -137,7 +137,7 @@ def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[i
             f"{path}: corrupt binary_compressed PCD: it declares {usize} uncompressed bytes from only "
             f"{csize} compressed bytes (LZF expands at most {LZF_MAX_RATIO}-fold)"
         )
-    raw = b""
+    raw: bytes | None = b""
     if n:
         comp = fh.read(csize)
         try:
@@ -149,6 +149,7 @@ def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[i
             detail = ("the LZF data is invalid" if got == "invalid"
                       else f"the LZF data decompresses to {got} bytes than declared")
             raise PointCloudError(f"{path}: corrupt binary_compressed PCD data: {detail}")
+    assert raw is not None  # checked above
     dtypes = hdr.dtypes()
     offs = np.cumsum([0] + [n * dt.itemsize * c for dt, c in zip(dtypes, hdr.counts)])
     return {hdr.fields[i]: np.frombuffer(raw, dtype=dtypes[i], count=n, offset=int(offs[i])) for i in keep}

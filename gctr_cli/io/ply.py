@@ -301,6 +301,7 @@ def _truncated(path: Path, el: _Element, row: int) -> PointCloudError:
 
 
 def _skip_list(path: Path, body: bytes, el: _Element, p: _Prop, offset: int, order: str, row: int) -> int:
+    assert p.count_dtype is not None, "a list property"
     csize = np.dtype(p.count_dtype).itemsize
     if offset + csize > len(body):
         raise _truncated(path, el, row)
@@ -332,7 +333,8 @@ def _skip_element(path: Path, body: bytes, el: _Element, offset: int, order: str
             pos = end
     row_size = pos - offset
     if offset + el.count * row_size <= len(body):
-        fields, k = [], 0
+        fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = []
+        k = 0
         for i, p in enumerate(el.props):
             if p.count_dtype is None:
                 fields.append((f"s{i}", order + p.dtype))
@@ -378,10 +380,9 @@ def ply_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
             continue
         code = v.dtype.str[1:]
         if code not in _TYPE_NAMES:
-            v = v.astype(np.float64) if v.dtype.kind in "fiub" else None
-            if v is None:
+            if v.dtype.kind not in "fiub":
                 continue
-            code = "f8"
+            v, code = v.astype(np.float64), "f8"
         cols.append(("_".join(str(name).split()) or "attr", v.astype("<" + code)))
     fmt = "binary_little_endian" if binary else "ascii"
     header = f"ply\nformat {fmt} 1.0\ncomment written by gctr\nelement vertex {n}\n"
