@@ -16,10 +16,10 @@ What it measures, per pair (manifest order, seed = ``derive_seed(config.seed, pa
   and process start-up are excluded, loading is reported separately) and the engine's per-stage
   timings (``RegistrationResult.timings``);
 * memory: each pair runs in a *fresh* child process (multiprocessing ``spawn`` context, one process
-  per pair, ``OMP_NUM_THREADS``/``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` = 1 in its environment
-  before numpy is imported), so the child's peak resident set is the pair's peak memory. It includes
-  the interpreter + imports baseline, which is also recorded (resident set right before the clouds
-  are loaded) so the pair's own increment is visible.
+  per pair, ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` etc. (``gctr_cli.fsutil.THREAD_ENV_VARS``, as
+  in batch workers) = 1 in its environment before numpy is imported), so the child's peak resident set
+  is the pair's peak memory. It includes the interpreter + imports baseline, which is also recorded
+  (resident set right before the clouds are loaded) so the pair's own increment is visible.
 
   The peak is read from ``VmHWM`` in ``/proc/self/status`` (the high-water mark of the child's own
   address space). ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` is recorded too (column
@@ -52,6 +52,7 @@ except timings, memory, date and load average is deterministic.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import hashlib
 import inspect
@@ -82,6 +83,7 @@ from data_scripts.common import (
     usable_transform,
 )
 from gctr_cli.batch import flatten_dict
+from gctr_cli.fsutil import THREAD_ENV_VARS, set_parent_death_signal, single_thread_env
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO_ROOT / "bench" / "work" / "data"
@@ -90,7 +92,6 @@ DEFAULT_OUT = REPO_ROOT / "bench" / "ENGINE.md"
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
 ALL_LEVELS = ("easy", "cross", "hard", "real", "part", "lowoverlap", "sfm", "scene")
 GENERATE_ARGS = ["generate", "--levels", ",".join(ALL_LEVELS), "--pairs-per-model", "10"]  # + --seed N
-THREAD_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 QUICK_PAIRS = 3
 
 # Stages reported by gctr_cli.engine.gctr (in pipeline order); unknown stages are appended, sorted.
@@ -127,19 +128,6 @@ def _proc_status_mb(field: str) -> float:
     return float("nan")
 
 
-def _set_parent_death_signal() -> None:
-    """Linux: die with the driver (a killed benchmark must not leave a child computing)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-        import signal
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
-    except Exception:  # noqa: BLE001
-        pass
-
-
 def run_one(task: dict[str, Any]) -> dict[str, Any]:
     """Load, register and score one pair in the current process; return its CSV row (as a dict).
 
@@ -151,8 +139,9 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
 
     from gctr_cli.config import config_from_dict
     from gctr_cli.engine.gctr import register
+    from gctr_cli.geometry import split
     from gctr_cli.io import load_point_cloud, read_matrix
-    from gctr_cli.metrics import decompose_similarity, transform_errors
+    from gctr_cli.metrics import transform_errors
 
     config = config_from_dict(task["config"], "<bench config>")
     row: dict[str, Any] = {k: task[k] for k in ("pair_id", "level", "model", "seed")}
@@ -182,7 +171,7 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     row["iterations"] = int(result.iterations)
     row["overlap"] = float(result.overlap)
     row["scale_est"] = float(result.scale)
-    row["scale_gt"] = decompose_similarity(T_gt)[0]
+    row["scale_gt"] = split(T_gt)[0]
     row["timings"] = {str(k): float(v) for k, v in dict(result.timings).items()}
     diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
     # Same definition as the batch runner: translation error measured at the source centroid when
@@ -235,7 +224,7 @@ def diagnose_failure(source, target, T_answer, T_gt, engine_config, seed: int) -
 
 def _child_main(task: dict[str, Any], conn: Any) -> None:
     """Entry point of a spawned child: run one pair, send its row (or the error) back, exit."""
-    _set_parent_death_signal()
+    set_parent_death_signal()  # a killed benchmark must not leave a child computing
     try:
         row = run_one(task)
     except BaseException as exc:  # noqa: BLE001 - every problem becomes that pair's row
@@ -261,9 +250,8 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
     from multiprocessing.connection import wait
 
     ctx = multiprocessing.get_context("spawn")
-    saved = {v: os.environ.get(v) for v in THREAD_ENV_VARS}
-    for v in THREAD_ENV_VARS:  # inherited by the children at exec, i.e. before they import numpy
-        os.environ[v] = "1"
+    one_thread = contextlib.ExitStack()
+    one_thread.enter_context(single_thread_env())  # inherited by the children at exec, before they import numpy
     rows: dict[int, dict[str, Any]] = {}
     pending = deque(enumerate(tasks))
     running: dict[Any, tuple[int, Any, float]] = {}  # reader connection -> (task index, process, start)
@@ -308,11 +296,7 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
         for _, proc, _ in running.values():
             proc.kill()
             proc.join()
-        for v, value in saved.items():
-            if value is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = value
+        one_thread.close()
     return [rows[i] for i in range(len(tasks))]
 
 

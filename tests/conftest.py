@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gctr_cli.geometry import apply, to_matrix
+
 TESTS_DIR = Path(__file__).resolve().parent
 REPO = TESTS_DIR.parent
 
@@ -51,6 +53,7 @@ def pytest_collection_modifyitems(config, items):
 
 
 def rotation(axis, angle_deg: float) -> np.ndarray:
+    """Rotation by ``angle_deg`` degrees about ``axis`` (Rodrigues)."""
     axis = np.asarray(axis, float)
     axis = axis / np.linalg.norm(axis)
     a = math.radians(angle_deg)
@@ -58,20 +61,15 @@ def rotation(axis, angle_deg: float) -> np.ndarray:
     return np.eye(3) + math.sin(a) * K + (1 - math.cos(a)) * K @ K
 
 
-def similarity(scale: float, R: np.ndarray, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = scale * R
-    T[:3, 3] = t
-    return T
-
-
 def random_similarity(rng: np.random.Generator, max_angle: float = 40.0) -> np.ndarray:
+    """A moderate similarity: rotation of 5-``max_angle`` degrees, scale in [0.5, 2], translation in [-3, 3]^3."""
     R = rotation(rng.normal(size=3), rng.uniform(5.0, max_angle))
-    return similarity(float(rng.uniform(0.5, 2.0)), R, rng.uniform(-3, 3, 3))
+    return to_matrix(float(rng.uniform(0.5, 2.0)), R, rng.uniform(-3, 3, 3))
 
 
-def apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    return pts @ T[:3, :3].T + T[:3, 3]
+def translation(offset) -> np.ndarray:
+    """The 4x4 pure translation by ``offset``."""
+    return to_matrix(1.0, np.eye(3), offset)
 
 
 def bumpy_surface(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -25,10 +25,10 @@ TIMING_COLUMNS = {"time_s", "cpu_s", "load_s", "rss_baseline_mb", "peak_rss_mb",
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory) -> Path:
     """``pairs.csv`` with one easy and one cross bunny pair (3000-point sources), as the generator writes it."""
-    from data_scripts.common import read_points
+    from gctr_cli.io import load_point_cloud
 
     out = tmp_path_factory.mktemp("bench") / "data"
-    bunny = read_points(mb.DATA_DIR / "models" / "bunny.ply")
+    bunny = load_point_cloud(mb.DATA_DIR / "models" / "bunny.ply")
     rows = []
     for level in ("easy", "cross"):
         pair = mb.make_pair(bunny, mb.LEVELS[level], mb.pair_rng(0, level, "bunny", 0), n_source=3000)

@@ -20,12 +20,10 @@ from click.testing import CliRunner
 from conftest import (
     PYTHON,
     REPO,
-    apply,
     bumpy_surface,
     read_csv,
     rotation,
     row_matrix,
-    similarity,
     write_cloud,
     write_manifest_rows,
 )
@@ -33,6 +31,7 @@ from conftest import (
 from gctr_cli import batch, cli
 from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
 from gctr_cli.config import Config, config_from_dict
+from gctr_cli.geometry import apply, to_matrix
 from gctr_cli.io import load_point_cloud, read_matrix, write_matrix
 
 
@@ -439,7 +438,7 @@ def _real_pairs(root: Path) -> tuple[Path, dict[str, np.ndarray]]:
         t = rng.uniform(-1, 1, 3) * diag
         if pid.endswith("utm"):
             t = t + np.array([4.6e5, 5.2e6, 300.0])
-        T = similarity(scale, rotation(rng.normal(size=3), angle), t)
+        T = to_matrix(scale, rotation(rng.normal(size=3), angle), t)
         tgt = apply(T, tgt_model) + rng.normal(scale=0.003 * diag * scale, size=(len(tgt_model), 3))
         s_path = write_cloud(root / "src" / f"{pid}{se}", src)
         t_path = write_cloud(root / "tgt" / f"{pid}{te}", tgt)

@@ -19,11 +19,12 @@ from click.testing import CliRunner
 distributed = pytest.importorskip("distributed")
 
 import fake_engine  # noqa: E402
-from conftest import apply, bumpy_surface, read_csv, rotation, similarity, write_cloud, write_manifest_rows  # noqa: E402
+from conftest import bumpy_surface, read_csv, rotation, write_cloud, write_manifest_rows  # noqa: E402
 
 from gctr_cli import batch, cli, dask_executor  # noqa: E402
 from gctr_cli.batch import BatchError, derive_seed, run_batch  # noqa: E402
 from gctr_cli.config import config_from_dict  # noqa: E402
+from gctr_cli.geometry import apply, to_matrix  # noqa: E402
 from gctr_cli.io import read_matrix, write_matrix  # noqa: E402
 
 
@@ -205,7 +206,7 @@ def test_real_engine_pair_is_identical_on_dask_and_local(tmp_path, scheduler):
     rng = np.random.default_rng(99)
     root = tmp_path / "data"
     src = bumpy_surface(rng, 1500)
-    T = similarity(1.6, rotation([0.3, -1.0, 0.4], 35.0), [0.5, -1.2, 2.0])
+    T = to_matrix(1.6, rotation([0.3, -1.0, 0.4], 35.0), [0.5, -1.2, 2.0])
     tgt = apply(T, bumpy_surface(rng, 2000)) + rng.normal(scale=0.004, size=(2000, 3))
     write_cloud(root / "a.ply", src)
     write_cloud(root / "b.pcd", tgt)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from gctr_cli import fsutil
+from gctr_cli.geometry import random_rotation, to_matrix
 from gctr_cli.io import (
     SUPPORTED_EXTENSIONS,
     MatrixError,
@@ -699,13 +700,8 @@ def test_saved_file_permissions_follow_umask(tmp_path, cloud):
 
 
 def _random_similarity(rng) -> np.ndarray:
-    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    T = np.eye(4)
-    T[:3, :3] = rng.uniform(0.1, 10) * q
-    T[:3, 3] = rng.normal(size=3) * np.array([1e-7, 1e3, 1e6])
-    return T
+    """Scale 0.1-10 and translations of very different magnitudes (1e-7 to 1e6): hard to print exactly."""
+    return to_matrix(rng.uniform(0.1, 10), random_rotation(rng), rng.normal(size=3) * np.array([1e-7, 1e3, 1e6]))
 
 
 def test_matrix_round_trip_bit_exact(tmp_path, rng):
