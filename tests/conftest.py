@@ -2,14 +2,14 @@
 
 ``dataset`` builds, in ``tmp_path``, pairs whose target is an exact similarity transform of the source
 point by point (``target[i] = T_gt @ source[i]``), in mixed formats (.ply/.pcd/.xyz), with
-ground-truth matrix files and a manifest. Tests that need the real GCTR engine are marked
-``@pytest.mark.engine`` and skipped while the engine is still a placeholder.
+ground-truth matrix files and a manifest. Tests that run the real GCTR engine are marked
+``@pytest.mark.engine``, tests over ~5 s ``@pytest.mark.slow`` (markers registered in pyproject.toml;
+``make test-fast`` leaves the slow ones out).
 """
 
 from __future__ import annotations
 
 import csv
-import inspect
 import math
 import os
 import sys
@@ -23,28 +23,6 @@ from gctr_cli.geometry import apply, to_matrix
 
 TESTS_DIR = Path(__file__).resolve().parent
 REPO = TESTS_DIR.parent
-
-
-def pytest_configure(config):
-    config.addinivalue_line("markers", "engine: end-to-end test with the real GCTR engine (skipped until it exists)")
-
-
-def engine_available() -> bool:
-    try:
-        from gctr_cli.engine import gctr
-    except Exception:  # noqa: BLE001
-        return False
-    src = inspect.getsource(gctr.register)
-    return not ("raise NotImplementedError" in src and (gctr.__doc__ or "").lower().startswith("placeholder"))
-
-
-def pytest_collection_modifyitems(config, items):
-    if engine_available():
-        return
-    skip = pytest.mark.skip(reason="the GCTR engine is still a placeholder (NotImplementedError)")
-    for item in items:
-        if "engine" in item.keywords:
-            item.add_marker(skip)
 
 
 # ----------------------------------------------------------------------------------------------------

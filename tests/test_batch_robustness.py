@@ -10,11 +10,11 @@ from __future__ import annotations
 import errno
 import functools
 
-import fake_engine
 import pytest
 from click.testing import CliRunner
 from conftest import read_csv
 
+from data_scripts import fake_engine
 from gctr_cli import batch, cli, outdir
 from gctr_cli.batch import BatchError, run_batch
 from gctr_cli.manifest import MAX_PAIR_ID_BYTES, PairSpec

@@ -58,6 +58,7 @@ def level_row(report: str, level: str) -> list[str]:
     raise AssertionError(f"no table row for level {level}")
 
 
+@pytest.mark.slow
 def test_cli_writes_csv_and_report_consistent_with_it(tiny_data, tmp_path):
     out, pairs_csv = tmp_path / "ENGINE.md", tmp_path / "t_pairs.csv"
     proc = run_cli("--data", str(tiny_data), "--levels", "easy,cross", "--variant", "t", "--out", str(out),

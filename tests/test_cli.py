@@ -1,8 +1,8 @@
 """The ``gctr`` command line: help, config, manifest, register and batch (exit codes 0/1/2/3).
 
-Batch and register tests swap in the deterministic fake engine (``fake_engine.py``) through
+Batch and register tests swap in the deterministic fake engine (``data_scripts/fake_engine.py``) through
 monkeypatch, so the production command path is exercised with everything but the algorithm.
-Tests marked ``engine`` run the real GCTR engine end to end (skipped while it is a placeholder).
+Tests marked ``engine`` run the real GCTR engine end to end.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ import subprocess
 import textwrap
 from pathlib import Path
 
-import fake_engine
 import numpy as np
 import pytest
 import yaml
@@ -28,6 +27,7 @@ from conftest import (
     write_manifest_rows,
 )
 
+from data_scripts import fake_engine
 from gctr_cli import batch, cli
 from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
 from gctr_cli.config import Config, config_from_dict
@@ -276,6 +276,7 @@ def test_batch_write_aligned(runner, fake_batch, four_pairs, tmp_path):
                                    atol=1e-6 * np.abs(moved).max())
 
 
+@pytest.mark.slow
 def test_batch_exit_1_and_3(runner, fake_batch, four_pairs, tmp_path):
     ds = four_pairs
     (ds.root / "empty.pcd").write_bytes(b"")
@@ -354,7 +355,7 @@ def test_batch_lock_refusal_via_cli(runner, fake_batch, four_pairs, tmp_path):
 CLI_DRIVER = textwrap.dedent(
     """
     import functools, sys
-    import fake_engine
+    from data_scripts import fake_engine
     from gctr_cli import batch, cli
 
     if __name__ == "__main__":
@@ -364,6 +365,7 @@ CLI_DRIVER = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, subprocess_env):
     import signal
     import time

@@ -2,7 +2,7 @@
 
 Most tests share one module-scoped LocalCluster (connected to through its address, like a real
 cluster); the CLI test starts its own (``--executor dask`` without ``--scheduler``). They use the
-deterministic fake engine of ``fake_engine.py``; one test runs a small pair through the real engine.
+deterministic fake engine of ``data_scripts/fake_engine.py``; one test runs a small pair through the real engine.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from click.testing import CliRunner
 
 distributed = pytest.importorskip("distributed")
 
-import fake_engine  # noqa: E402
 from conftest import bumpy_surface, read_csv, rotation, write_cloud, write_manifest_rows  # noqa: E402
 
+from data_scripts import fake_engine  # noqa: E402
 from gctr_cli import batch, cli, dask_executor  # noqa: E402
 from gctr_cli.batch import BatchError, derive_seed, run_batch  # noqa: E402
 from gctr_cli.config import config_from_dict  # noqa: E402
@@ -59,6 +59,7 @@ def outputs(outdir: Path):
     return rows, errs, mats
 
 
+@pytest.mark.slow
 def test_dask_matches_the_local_pool_and_reports_failures(four_pairs, fast_config, tmp_path, scheduler):
     ds = four_pairs
     for i in range(3):
@@ -121,6 +122,7 @@ def test_dask_resume_finishes_a_partial_run(four_pairs, fast_config, tmp_path, s
     }
 
 
+@pytest.mark.slow
 def test_time_limit_on_an_external_cluster_keeps_the_cluster_usable(dataset, tmp_path, scheduler):
     """On a cluster gctr does not own, a timed-out pair fails alone and the cluster stays usable.
 
@@ -148,6 +150,7 @@ def test_time_limit_on_an_external_cluster_keeps_the_cluster_usable(dataset, tmp
         client.close()
 
 
+@pytest.mark.slow
 def test_cli_dask_local_cluster_with_time_limit(dataset, tmp_path, monkeypatch):
     """``--executor dask`` without an address starts (and closes) its own LocalCluster of -j workers."""
     monkeypatch.setattr(batch, "run_batch", functools.partial(batch.run_batch, register_fn=fake_engine.register))

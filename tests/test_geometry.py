@@ -81,7 +81,7 @@ def test_random_rotation_is_a_proper_rotation_and_matches_scipy():
 
 
 def test_random_rotation_is_uniform():
-    """Uniform on SO(3): the angle θ has density (1 - cos θ) / π, so E[cos θ] = -1/2 and E[trace R] = 1 + 2 E[cos θ] = 0."""
+    """Uniform on SO(3): angle density (1 - cos θ) / π, so E[cos θ] = -1/2 and E[trace R] = 1 + 2 E[cos θ] = 0."""
     rng = np.random.default_rng(2)
     traces = np.array([np.trace(random_rotation(rng)) for _ in range(4000)])
     assert abs(traces.mean()) < 0.05  # E[trace R] = 0 for the Haar measure (std of the mean ~0.016)

@@ -10,11 +10,11 @@ import time
 import tracemalloc
 from pathlib import Path
 
-import fake_engine
 import numpy as np
 import pytest
 from conftest import read_csv, write_manifest_rows
 
+from data_scripts import fake_engine
 from gctr_cli.config import Config
 from gctr_cli.io import PointCloudError, load_point_cloud, save_point_cloud
 from gctr_cli.io.errors import MAX_MESSAGE

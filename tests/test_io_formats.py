@@ -297,9 +297,8 @@ def test_register_laz_onto_e57_writes_the_aligned_cloud(tmp_path):
 
 
 def test_register_aligned_with_unwritable_extension_fails_before_registering(tmp_path, monkeypatch):
-    import fake_engine
-
     import gctr_cli.engine
+    from data_scripts import fake_engine
 
     monkeypatch.setattr(gctr_cli.engine, "register", fake_engine.register)
     called = []

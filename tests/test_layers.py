@@ -52,7 +52,7 @@ def test_no_batch_module_is_over_600_lines(name):
 
 DRIVER = """
 import atexit, json, sys
-import fake_engine
+from data_scripts import fake_engine
 import gctr_cli.methods
 gctr_cli.methods.get_register_fn = lambda method: fake_engine.register
 atexit.register(lambda: print("MODULES " + json.dumps(

@@ -19,17 +19,17 @@ import pytest
 
 distributed = pytest.importorskip("distributed")
 
-import fake_engine  # noqa: E402
 from conftest import Dataset, make_subprocess_env, read_csv  # noqa: E402
 from real_cluster import RealCluster  # noqa: E402
 
+from data_scripts import fake_engine  # noqa: E402
 from gctr_cli.batch import run_batch  # noqa: E402
 from gctr_cli.config import config_from_dict  # noqa: E402
 
 N_PAIRS = 12
 CONFIG = {"seed": 7, "batch": {"workers": 2, "time_limit_s": 60}}
 #: ``gctr`` with the fake engine (the CLI has no option to choose a register function)
-DRIVER = ("import functools, sys, fake_engine; from gctr_cli import batch, cli; "
+DRIVER = ("import functools, sys; from data_scripts import fake_engine; from gctr_cli import batch, cli; "
           "batch.run_batch = functools.partial(batch.run_batch, register_fn=fake_engine.slow_register); "
           "sys.argv[0] = 'gctr'; cli.main()")
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import csv
 
-import fake_engine
 import pytest
 from conftest import read_csv
 
+from data_scripts import fake_engine
 from gctr_cli.batch import run_batch
 from gctr_cli.config import Config, config_to_yaml
 from gctr_cli.outcome import ERRORS_COLUMNS, TRANSFORMS_COLUMNS

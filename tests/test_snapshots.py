@@ -7,12 +7,12 @@ import logging
 import subprocess
 import textwrap
 
-import fake_engine
 import numpy as np
 import pytest
 from click.testing import CliRunner
 from conftest import PYTHON, bumpy_surface, read_csv, rotation, write_cloud
 
+from data_scripts import fake_engine
 from gctr_cli import batch, cli, outcome, snapshots
 from gctr_cli.batch import run_batch, run_pair
 from gctr_cli.geometry import apply, to_matrix
