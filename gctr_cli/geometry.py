@@ -7,11 +7,12 @@ Convention (GUIDE §1): ``T = [[s·R, t], [0 0 0 1]]`` maps source points onto t
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = ["apply", "invert", "random_rotation", "split", "to_matrix"]
 
 
-def to_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def to_matrix(s: float, R: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
     """The 4x4 float64 matrix ``[[s·R, t], [0, 0, 0, 1]]`` of scale ``s``, 3x3 rotation ``R`` and translation ``t``."""
     T = np.eye(4)
     T[:3, :3] = s * np.asarray(R, dtype=np.float64)
@@ -19,7 +20,7 @@ def to_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
-def split(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def split(T: npt.ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
     """``(s, R, t)`` of a 4x4 similarity: ``s = |det A|^(1/3)`` of its 3x3 block ``A``, ``R = A / s``, ``t``.
 
     The inverse of :func:`to_matrix` for a similarity. ``R`` is returned as computed (a reflection or a
@@ -39,7 +40,7 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def invert(T: np.ndarray) -> np.ndarray:
+def invert(T: npt.ArrayLike) -> np.ndarray:
     """The inverse 4x4 transform (``apply(invert(T), apply(T, p)) ≈ p``).
 
     ``np.linalg.inv``: exact to rounding for any invertible affine matrix, and the same bits as the
