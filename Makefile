@@ -9,11 +9,14 @@ DEMO   ?= demo_out
 BENCH_LEVELS ?= easy,cross,hard,real,part,lowoverlap,sfm,scene
 SHARED       ?= ../shared/data
 
-.PHONY: setup system-deps browser-deps demo test bench-engine bench-engine-tune clean help
+.PHONY: setup system-deps browser-deps demo test test-fast lint typecheck bench-engine bench-engine-tune clean help
 
 help:
 	@echo "make demo          set up and run gctr batch on a small cross-source set (results in $(DEMO)/)"
 	@echo "make test          set up and run the test suite"
+	@echo "make test-fast     the test suite without the tests marked slow (pytest -m 'not slow')"
+	@echo "make lint          ruff check (rules in pyproject.toml)"
+	@echo "make typecheck     mypy with the pydantic plugin (packages in pyproject.toml)"
 	@echo "make bench-engine  full engine benchmark on the report set (seed 0) -> bench/ENGINE.md (tens of minutes)"
 	@echo "make bench-engine-tune  the same on the tuning set (seed 1) -> bench/work/ENGINE-seed1.md"
 	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the report set -> bench/RESULTS.md (long)"
@@ -65,6 +68,15 @@ demo: setup
 
 test: setup browser-deps
 	$(BIN)/python -m pytest -q
+
+test-fast: setup
+	$(BIN)/python -m pytest -q -m "not slow"
+
+lint: setup
+	$(BIN)/ruff check .
+
+typecheck: setup
+	$(BIN)/mypy
 
 # Report set (--seed 0) -> bench/ENGINE.md + bench/confidence_tradeoff.png; tuning set (--seed 1) -> bench/work/.
 bench-engine: bench-data

@@ -12,10 +12,10 @@ What it measures, per run (``gctr_cli.batch.run_batch`` in this process, like ``
   batch process's fsynced rows and matrix file), and the engine's share of the slots' time;
 * **speed-up** of 2 workers over 1 with an engine that burns ``--work-ms`` of CPU per pair.
 
-The engine is :func:`register` below: Umeyama on index correspondences of two 200-point clouds (every
-pair uses the same two files) plus an optional busy loop; no Open3D, so the numbers are the batch
-layer's own. Usage (defaults: 10,000 pairs at -j2 for the scale runs; 300 pairs of 100 ms of work at -j1
-and -j2 for the speed-up)::
+The engine is :func:`data_scripts.fake_engine.busy_register` (the batch tests' fake engine plus a busy
+loop): Umeyama on index correspondences of two 200-point clouds (every pair uses the same two files);
+no Open3D, so the numbers are the batch layer's own. Usage (defaults: 10,000 pairs at -j2 for the scale
+runs; 300 pairs of 100 ms of work at -j1 and -j2 for the speed-up)::
 
     python -m data_scripts.bench_batch --out bench/BATCH.md
     python -m data_scripts.bench_batch --pairs 1000 --speedup-pairs 100 --out /tmp/BATCH.md   # quick
@@ -34,44 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.engine.result import RegistrationResult
-
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _busy(ms: float) -> None:
-    end = time.perf_counter() + ms / 1000.0
-    x = 0
-    while time.perf_counter() < end:
-        x += 1
-
-
-def _umeyama(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / ((a**2).sum() / len(src)))
-    T = np.eye(4)
-    T[:3, :3] = s * R
-    T[:3, 3] = mu_d - s * R @ mu_s
-    return T
-
-
-def register(source, target, config=None, seed=0):
-    """Stand-in engine: exact Umeyama on index correspondences, plus ``GCTR_BENCH_WORK_MS`` of CPU."""
-    t0 = time.perf_counter()
-    work_ms = float(os.environ.get("GCTR_BENCH_WORK_MS", "0"))
-    if work_ms > 0:
-        _busy(work_ms)
-    T = _umeyama(np.asarray(source), np.asarray(target))
-    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-    return RegistrationResult(transform=T, scale=s, rotation=T[:3, :3] / s, translation=T[:3, 3].copy(),
-                              fitness=1.0, inlier_rmse=0.0, n_inliers=len(source), iterations=1, status="ok",
-                              message="", runtime_s=time.perf_counter() - t0, seed=seed, confidence=0.9)
+ENGINE = "data_scripts.fake_engine:busy_register"
 
 
 class RssSampler:
@@ -103,7 +67,7 @@ class RssSampler:
         while not self._stop.wait(self.period_s):
             self.samples.append((self._rows(), self.rss_mib()))
 
-    def __enter__(self) -> "RssSampler":
+    def __enter__(self) -> RssSampler:
         self._thread.start()
         return self
 
@@ -121,14 +85,15 @@ class RssSampler:
 
 def make_pairs(root: Path, n: int):
     """``n`` pairs (ids p000000...) of the same two 200-point clouds with ground truth."""
+    from gctr_cli.geometry import apply, to_matrix
     from gctr_cli.io import save_point_cloud, write_matrix
     from gctr_cli.manifest import PairSpec
 
     rng = np.random.default_rng(1)
     src = rng.uniform(-1, 1, (200, 3))
     c, s_ = np.cos(0.3), np.sin(0.3)
-    T = np.array([[1.5 * c, -1.5 * s_, 0, 2.0], [1.5 * s_, 1.5 * c, 0, -1.0], [0, 0, 1.5, 0.5], [0, 0, 0, 1.0]])
-    tgt = src @ T[:3, :3].T + T[:3, 3]
+    T = to_matrix(1.5, np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]), [2.0, -1.0, 0.5])
+    tgt = apply(T, src)
     root.mkdir(parents=True, exist_ok=True)
     save_point_cloud(root / "src.ply", src)
     save_point_cloud(root / "tgt.ply", tgt)
@@ -148,7 +113,7 @@ def run_one(pairs, outdir: Path, executor: str, workers: int, work_ms: float) ->
     t0 = time.monotonic()
     with RssSampler(outdir / "transforms.csv") as sampler:
         summary = run_batch(pairs, config, outdir, workers=workers, executor=executor,
-                            register_fn="data_scripts.bench_batch:register")
+                            register_fn=ENGINE)
     wall = time.monotonic() - t0
     with open(outdir / "transforms.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -191,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=REPO / "bench" / "work" / "batch-scale", help="scratch folder")
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "BATCH.md", help="Markdown report")
     args = ap.parse_args(argv)
-    sys.path.insert(0, str(REPO))  # workers import data_scripts.bench_batch:register
+    sys.path.insert(0, str(REPO))  # workers import data_scripts.fake_engine:busy_register
 
     executors = [e.strip() for e in args.executors.split(",") if e.strip()]
     pairs = make_pairs(args.work / "data", max(args.pairs, args.speedup_pairs))
@@ -225,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     text = f"""# Batch layer at scale (stand-in engine)
 
 Command: `{cmd.strip()}` ({time.strftime('%Y-%m-%d')}). Machine: {machine}.
-The engine is `data_scripts/bench_batch.py:register` (Umeyama on 200-point clouds plus a CPU busy loop),
+The engine is `data_scripts/fake_engine.py:busy_register` (Umeyama on 200-point clouds plus a CPU busy loop),
 so the numbers are the batch layer's own: loading the two clouds, the pipe or the dask scheduler, and the
 batch process's fsynced rows and matrix file. Overhead per pair = (wall x workers - engine time) / pairs.
 The dask runs start their own LocalCluster (-j worker processes, one thread each); its start-up (a few

@@ -16,10 +16,10 @@ What it measures, per pair (manifest order, seed = ``derive_seed(config.seed, pa
   and process start-up are excluded, loading is reported separately) and the engine's per-stage
   timings (``RegistrationResult.timings``);
 * memory: each pair runs in a *fresh* child process (multiprocessing ``spawn`` context, one process
-  per pair, ``OMP_NUM_THREADS``/``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` = 1 in its environment
-  before numpy is imported), so the child's peak resident set is the pair's peak memory. It includes
-  the interpreter + imports baseline, which is also recorded (resident set right before the clouds
-  are loaded) so the pair's own increment is visible.
+  per pair, ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` etc. (``gctr_cli.fsutil.THREAD_ENV_VARS``, as
+  in batch workers) = 1 in its environment before numpy is imported), so the child's peak resident set
+  is the pair's peak memory. It includes the interpreter + imports baseline, which is also recorded
+  (resident set right before the clouds are loaded) so the pair's own increment is visible.
 
   The peak is read from ``VmHWM`` in ``/proc/self/status`` (the high-water mark of the child's own
   address space). ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` is recorded too (column
@@ -52,6 +52,7 @@ except timings, memory, date and load average is deterministic.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import hashlib
 import inspect
@@ -64,7 +65,7 @@ import sys
 import time
 import traceback
 from collections import deque
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +83,7 @@ from data_scripts.common import (
     usable_transform,
 )
 from gctr_cli.batch import flatten_dict
+from gctr_cli.fsutil import THREAD_ENV_VARS, set_parent_death_signal, single_thread_env
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO_ROOT / "bench" / "work" / "data"
@@ -90,7 +92,6 @@ DEFAULT_OUT = REPO_ROOT / "bench" / "ENGINE.md"
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
 ALL_LEVELS = ("easy", "cross", "hard", "real", "part", "lowoverlap", "sfm", "scene")
 GENERATE_ARGS = ["generate", "--levels", ",".join(ALL_LEVELS), "--pairs-per-model", "10"]  # + --seed N
-THREAD_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 QUICK_PAIRS = 3
 
 # Stages reported by gctr_cli.engine.gctr (in pipeline order); unknown stages are appended, sorted.
@@ -127,19 +128,6 @@ def _proc_status_mb(field: str) -> float:
     return float("nan")
 
 
-def _set_parent_death_signal() -> None:
-    """Linux: die with the driver (a killed benchmark must not leave a child computing)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-        import signal
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
-    except Exception:  # noqa: BLE001
-        pass
-
-
 def run_one(task: dict[str, Any]) -> dict[str, Any]:
     """Load, register and score one pair in the current process; return its CSV row (as a dict).
 
@@ -151,8 +139,9 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
 
     from gctr_cli.config import config_from_dict
     from gctr_cli.engine.gctr import register
+    from gctr_cli.geometry import split
     from gctr_cli.io import load_point_cloud, read_matrix
-    from gctr_cli.metrics import decompose_similarity, transform_errors
+    from gctr_cli.metrics import transform_errors
 
     config = config_from_dict(task["config"], "<bench config>")
     row: dict[str, Any] = {k: task[k] for k in ("pair_id", "level", "model", "seed")}
@@ -182,7 +171,7 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     row["iterations"] = int(result.iterations)
     row["overlap"] = float(result.overlap)
     row["scale_est"] = float(result.scale)
-    row["scale_gt"] = decompose_similarity(T_gt)[0]
+    row["scale_gt"] = split(T_gt)[0]
     row["timings"] = {str(k): float(v) for k, v in dict(result.timings).items()}
     diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
     # Same definition as the batch runner: translation error measured at the source centroid when
@@ -235,7 +224,7 @@ def diagnose_failure(source, target, T_answer, T_gt, engine_config, seed: int) -
 
 def _child_main(task: dict[str, Any], conn: Any) -> None:
     """Entry point of a spawned child: run one pair, send its row (or the error) back, exit."""
-    _set_parent_death_signal()
+    set_parent_death_signal()  # a killed benchmark must not leave a child computing
     try:
         row = run_one(task)
     except BaseException as exc:  # noqa: BLE001 - every problem becomes that pair's row
@@ -261,12 +250,11 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
     from multiprocessing.connection import wait
 
     ctx = multiprocessing.get_context("spawn")
-    saved = {v: os.environ.get(v) for v in THREAD_ENV_VARS}
-    for v in THREAD_ENV_VARS:  # inherited by the children at exec, i.e. before they import numpy
-        os.environ[v] = "1"
+    one_thread = contextlib.ExitStack()
+    one_thread.enter_context(single_thread_env())  # inherited by the children at exec, before they import numpy
     rows: dict[int, dict[str, Any]] = {}
     pending = deque(enumerate(tasks))
-    running: dict[Any, tuple[int, Any, float]] = {}
+    running: dict[Any, tuple[int, Any, float]] = {}  # reader connection -> (task index, process, start)
     n_done = 0
     try:
         while pending or running:
@@ -278,7 +266,8 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
                 proc.start()
                 writer.close()
                 running[reader] = (i, proc, time.monotonic())
-            for reader in wait(list(running), timeout=1.0):
+            ready: list[Any] = wait(list(running), timeout=1.0)
+            for reader in ready:
                 i, proc, _ = running.pop(reader)
                 try:
                     row = reader.recv()
@@ -304,20 +293,17 @@ def run_pairs(tasks: list[dict[str, Any]], jobs: int = 1, time_limit_s: float = 
                     if progress:
                         _print_progress(n_done, len(tasks), rows[i])
     finally:
-        for reader, (_, proc, _) in running.items():
+        for _, proc, _ in running.values():
             proc.kill()
             proc.join()
-        for v, value in saved.items():
-            if value is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = value
+        one_thread.close()
     return [rows[i] for i in range(len(tasks))]
 
 
 def _print_progress(done: int, total: int, row: dict[str, Any]) -> None:
     if row.get("status") in ("ok", "failed"):
-        detail = (f"{row['status']:6s} {'success' if row['success'] else 'FAIL   '} {row['time_s']:6.2f} s (cpu {row['cpu_s']:5.2f})  "
+        verdict = "success" if row["success"] else "FAIL   "
+        detail = (f"{row['status']:6s} {verdict} {row['time_s']:6.2f} s (cpu {row['cpu_s']:5.2f})  "
                   f"rot {row['rot_err_deg']:.3g} deg  trans {row['trans_err_rel']:.3g}  scale {row['scale_err']:.3g}  "
                   f"peak {row['peak_rss_mb']:.0f} MB")
     else:
@@ -497,7 +483,7 @@ def _quantile(xs: list[float], q: float) -> float:
     return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
 
 
-def _num(x: float, spec: str = ".3g") -> str:
+def _num(x: float | None, spec: str = ".3g") -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "–"
     return format(x, spec)
@@ -570,17 +556,18 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
         "machine and is far less sensitive to other processes competing for the cores).",
         "",
         "| level | pairs | models | points src / tgt (median) | success | median rot err (°) | median trans err (rel) "
-        "| median scale err | median TM err | median log(TM) | median time (s) | p90 time (s) | median CPU time (s) | max peak mem (MB) |",
+        "| median scale err | median TM err | median log(TM) | median time (s) | p90 time (s) | median CPU time (s) "
+        "| max peak mem (MB) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     stats = {lv: _level_stats(rs) for lv, rs in groups}
-    for lv, rs in groups:
+    for lv, _ in groups:
         st = stats[lv]
         out.append(
             f"| {lv} | {st['pairs']} | {st['models']} | {_num(st['n_src'], '.0f')} / {_num(st['n_tgt'], '.0f')} "
             f"| {_rate(st['success'], st['pairs'])} | {_num(st['rot'])} | {_num(st['trans'])} | {_num(st['scale'])} "
-            f"| {_num(st['tm'])} | {_num(st['logtm'], '.2f')} | {_num(st['t_med'], '.2f')} | {_num(st['t_p90'], '.2f')} "
-            f"| {_num(st['cpu_med'], '.2f')} | {_num(st['mem'], '.0f')} |"
+            f"| {_num(st['tm'])} | {_num(st['logtm'], '.2f')} | {_num(st['t_med'], '.2f')} "
+            f"| {_num(st['t_p90'], '.2f')} | {_num(st['cpu_med'], '.2f')} | {_num(st['mem'], '.0f')} |"
         )
     out += ["", "### Memory", "",
             "| level | median baseline RSS before loading (MB) | max peak RSS (MB) | max increment over baseline (MB) "
@@ -638,8 +625,8 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
         for r in failed:
             msg = (r.get("message") or "").replace("|", "\\|") or "(status ok, errors above the thresholds)"
             out.append(f"| {r['pair_id']} | {r['level']} | {r.get('status')} | {_num(r.get('rot_err_deg'))} "
-                       f"| {_num(r.get('trans_err_rel'))} | {_num(r.get('scale_err'))} | {_num(r.get('time_s'), '.2f')} "
-                       f"| {msg} |")
+                       f"| {_num(r.get('trans_err_rel'))} | {_num(r.get('scale_err'))} "
+                       f"| {_num(r.get('time_s'), '.2f')} | {msg} |")
     out += ["", SECTION_END, ""]
     return "\n".join(out)
 
@@ -660,7 +647,7 @@ def render_verdicts(rows: list[dict[str, Any]], levels: list[str], info: dict[st
             f"({100.0 * silent / n_all if n_all else 0:.1f}%)**.", ""]
 
     sweep = confidence_sweep(rows, CONFIDENCE_THRESHOLDS)
-    confs = [r.get("confidence") for r in rows if isinstance(r.get("confidence"), float)]
+    confs = [r["confidence"] for r in rows if isinstance(r.get("confidence"), float)]
     has_conf = any(not math.isnan(c) for c in confs)
     out += ["### Confidence threshold trade-off", "",
             f"Configured threshold `engine.min_confidence` = {_num(configured, 'g')}. Offline sweep over all pairs: "
@@ -831,7 +818,8 @@ def code_state() -> str:
         return "not a git checkout"
     if not dirty:
         return f"git `{head}`, engine and configs unmodified"
-    names = ", ".join(f"`{line[3:]}`" for line in dirty[:8]) + (f", … ({len(dirty) - 8} more)" if len(dirty) > 8 else "")
+    more = f", … ({len(dirty) - 8} more)" if len(dirty) > 8 else ""
+    names = ", ".join(f"`{line[3:]}`" for line in dirty[:8]) + more
     return f"git `{head}` plus uncommitted changes in {names}"
 
 
@@ -897,7 +885,8 @@ def main(argv: list[str] | None = None) -> int:
     plot_name = "confidence_tradeoff.png" if args.variant == "default" else f"confidence_tradeoff_{args.variant}.png"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     plot_confidence_tradeoff({"gctr": confidence_sweep(rows)}, args.out.parent / plot_name,
-                             config.engine.min_confidence, f"gctr, variant {args.variant}: confidence threshold trade-off")
+                             config.engine.min_confidence,
+                             f"gctr, variant {args.variant}: confidence threshold trade-off")
 
     def shown(p: Path) -> str:
         p = Path(p).resolve()
@@ -909,7 +898,7 @@ def main(argv: list[str] | None = None) -> int:
     resolved = "\n".join(f"{k}={v}" for k, v in sorted(flatten_dict(config_dict).items()))
     info = {
         "variant": args.variant,
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "command": "python -m data_scripts.bench_engine" + (" " + shlex.join(argv_used) if argv_used else ""),
         "machine": machine_info(),
         "load_before": load_before,

@@ -1,7 +1,8 @@
-"""Small I/O and geometry helpers shared by the data scripts (plain numpy arrays, no loops over points).
+"""Small helpers shared by the data scripts (plain numpy arrays, no loops over points).
 
-Point clouds are ``(N, 3)`` float64 arrays. Writers are our own (header + ``ndarray.tofile``) so the
-output bytes depend only on the array: the same array always gives the same file.
+Point clouds are ``(N, 3)`` float64 arrays, read with ``gctr_cli.io.load_point_cloud`` and written with the
+package's writers (:func:`write_points`), so the benchmark files are exactly what ``gctr`` reads and
+writes; 4x4 matrices go through ``gctr_cli.io.read_matrix`` / ``write_matrix`` and ``gctr_cli.geometry``.
 """
 
 from __future__ import annotations
@@ -17,30 +18,6 @@ FORMATS = ("ply", "pcd", "xyz")
 
 
 # --------------------------------------------------------------------------------------------- reading
-def read_points(path: str | Path) -> np.ndarray:
-    """Load the xyz coordinates of a PLY/PCD/XYZ file (vertices only, faces ignored) as float64.
-
-    Open3D only warns on an unreadable file and returns an empty cloud, so emptiness is checked here.
-    PCD files go through the tensor reader ``o3d.t.io``: Open3D 0.20's legacy ``o3d.io.read_point_cloud``
-    returns all-zero coordinates for *binary* PCD files with float64 (``SIZE 8``) fields.
-    """
-    import open3d as o3d  # deferred: heavy import
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"point cloud file not found: {path}")
-    if path.suffix.lower() == ".pcd":
-        pcd = o3d.t.io.read_point_cloud(str(path))
-        pts = pcd.point.positions.numpy().astype(np.float64) if "positions" in pcd.point else np.empty((0, 3))
-    else:
-        pts = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[0] == 0:
-        raise ValueError(f"no points could be read from {path}")
-    if not np.isfinite(pts).all():
-        raise ValueError(f"non-finite coordinates in {path}")
-    return pts
-
-
 def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
     """Parse a ``*_poses_world_from_scan.txt`` file: a scan name line, then 4 rows of a 4x4 matrix.
 
@@ -61,80 +38,34 @@ def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
     return poses
 
 
-def read_matrix(path: str | Path) -> np.ndarray:
-    mat = np.loadtxt(path, dtype=np.float64)
-    if mat.shape != (4, 4):
-        raise ValueError(f"{path}: expected a 4x4 matrix, got shape {mat.shape}")
-    return mat
-
-
 # --------------------------------------------------------------------------------------------- writing
-def write_ply(path: str | Path, points: np.ndarray, dtype: str = "float64", comment: str | None = None) -> None:
-    """Binary little-endian PLY with x y z only (``dtype`` float32 -> ``float``, float64 -> ``double``)."""
-    np_dtype = {"float32": "<f4", "float64": "<f8"}[dtype]
-    ply_type = {"float32": "float", "float64": "double"}[dtype]
-    pts = np.ascontiguousarray(points, dtype=np_dtype)
+def write_points(path: str | Path, points: np.ndarray, pcd_encoding: str = "binary") -> None:
+    """Write float64 coordinates exactly with the package's writer (``gctr_cli.io``); the format is chosen
+    by the file extension, one of :data:`FORMATS`; ``pcd_encoding`` ``binary`` or ``ascii`` (PCD only)."""
+    from gctr_cli.io import save_point_cloud
+
+    ext = Path(path).suffix.lower().lstrip(".")
+    if ext not in FORMATS:
+        raise ValueError(f"unsupported point cloud format {ext!r} (use one of {FORMATS})")
+    if pcd_encoding not in ("binary", "ascii"):
+        raise ValueError(f"unknown PCD encoding {pcd_encoding!r}")
+    save_point_cloud(path, points, binary=pcd_encoding == "binary")
+
+
+def write_ply_float32(path: str | Path, points: np.ndarray, comment: str | None = None) -> None:
+    """Binary little-endian PLY with float32 x y z and ``comment`` lines: the small shipped files of ``data/``
+    (the package's writer keeps float64 and has no comment lines for the attribution)."""
+    pts = np.ascontiguousarray(points, dtype="<f4")
     header = ["ply", "format binary_little_endian 1.0"]
     if comment:
         header += [f"comment {c}" for c in comment.splitlines()]
-    header += [f"element vertex {len(pts)}"] + [f"property {ply_type} {a}" for a in "xyz"] + ["end_header"]
+    header += [f"element vertex {len(pts)}"] + [f"property float {a}" for a in "xyz"] + ["end_header"]
     with open(path, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         pts.tofile(fh)
 
 
-def write_pcd(path: str | Path, points: np.ndarray, encoding: str = "binary") -> None:
-    """PCD v0.7 with float64 fields x y z (TYPE F, SIZE 8); ``encoding`` ``binary`` or ``ascii`` (%.17g).
-
-    Both are exact. Caution: Open3D 0.20's legacy ``o3d.io.read_point_cloud`` reads the *binary* float64
-    variant as all zeros (its tensor reader ``o3d.t.io.read_point_cloud`` and PCL read it correctly);
-    the ascii variant is read correctly by both Open3D readers.
-    """
-    pts = np.ascontiguousarray(points, dtype="<f8")
-    n = len(pts)
-    if encoding not in ("binary", "ascii"):
-        raise ValueError(f"unknown PCD encoding {encoding!r}")
-    header = (
-        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\n"
-        f"COUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {encoding}\n"
-    )
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        if encoding == "binary":
-            pts.tofile(fh)
-        else:
-            np.savetxt(fh, pts, fmt="%.17g")
-
-
-def write_xyz(path: str | Path, points: np.ndarray) -> None:
-    """Text file, one ``x y z`` line per point at full precision (%.17g)."""
-    np.savetxt(path, np.asarray(points, dtype=np.float64), fmt="%.17g")
-
-
-def write_points(path: str | Path, points: np.ndarray, pcd_encoding: str = "binary") -> None:
-    """Write float64 coordinates exactly; the format is chosen by the file extension."""
-    ext = Path(path).suffix.lower().lstrip(".")
-    if ext == "ply":
-        write_ply(path, points, dtype="float64")
-    elif ext == "pcd":
-        write_pcd(path, points, encoding=pcd_encoding)
-    elif ext == "xyz":
-        write_xyz(path, points)
-    else:
-        raise ValueError(f"unsupported point cloud format {ext!r} (use one of {FORMATS})")
-
-
-def write_matrix(path: str | Path, mat: np.ndarray) -> None:
-    """4x4 matrix, four lines of four numbers, row-major, %.17g (GUIDE §1)."""
-    np.savetxt(path, np.asarray(mat, dtype=np.float64).reshape(4, 4), fmt="%.17g")
-
-
 # --------------------------------------------------------------------------------------------- geometry
-def transform(mat: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 (similarity) matrix to ``(N, 3)`` points: ``p' = A p + t``."""
-    return points @ mat[:3, :3].T + mat[:3, 3]
-
-
 def bbox_diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
@@ -167,7 +98,7 @@ def voxel_downsample_to_count(points: np.ndarray, target: int, iterations: int =
         return points.copy(), 0.0
     diag = bbox_diagonal(points)
     lo, hi = diag * 1e-5, diag * 0.5  # lo gives (nearly) all points, hi very few
-    best = None
+    best: tuple[int, float] | None = None
     for _ in range(iterations):
         mid = np.sqrt(lo * hi)
         n = len(voxel_downsample(points, mid))
@@ -179,6 +110,7 @@ def voxel_downsample_to_count(points: np.ndarray, target: int, iterations: int =
             lo = mid
         else:
             hi = mid
+    assert best is not None  # iterations >= 1
     voxel = float(best[1])
     return voxel_downsample(points, voxel), voxel
 

@@ -68,15 +68,14 @@ import numpy as np
 from data_scripts.common import (
     FORMATS,
     bbox_diagonal,
-    read_points,
     read_pose_file,
     remove_isolated,
-    transform,
     voxel_downsample_to_count,
-    write_matrix,
-    write_ply,
+    write_ply_float32,
     write_points,
 )
+from gctr_cli.geometry import apply, invert, random_rotation, to_matrix
+from gctr_cli.io import load_point_cloud, write_matrix
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +136,7 @@ REAL_LEVEL = Level("real", density=1 / 4, noise=0.0, outliers=0.0, crop_lo=1.0, 
 
 @dataclass(frozen=True)
 class Pair:
-    """A generated pair: ``target ≈ transform(T_gt, source)`` for the inlier points."""
+    """A generated pair: ``target ≈ apply(T_gt, source)`` for the inlier points."""
 
     source: np.ndarray
     target: np.ndarray
@@ -202,21 +201,12 @@ def add_outliers(
 def random_similarity(rng: np.random.Generator, s_lo: float, s_hi: float, t_radius: float) -> np.ndarray:
     """4x4 similarity: rotation uniform on SO(3), scale log-uniform in [s_lo, s_hi],
     translation uniform in the ball of radius ``t_radius``."""
-    from scipy.spatial.transform import Rotation
-
-    rot = Rotation.random(random_state=rng).as_matrix()
+    rot = random_rotation(rng)
     scale = float(np.exp(rng.uniform(np.log(s_lo), np.log(s_hi))))
     direction = rng.normal(size=3)
     direction /= np.linalg.norm(direction)
     trans = direction * t_radius * rng.uniform() ** (1.0 / 3.0)
-    mat = np.eye(4)
-    mat[:3, :3] = scale * rot
-    mat[:3, 3] = trans
-    return mat
-
-
-def invert_similarity(mat: np.ndarray) -> np.ndarray:
-    return np.linalg.inv(mat)
+    return to_matrix(scale, rot, trans)
 
 
 # ============================================================================================ pairs
@@ -243,7 +233,7 @@ def make_pair(model: np.ndarray, level: Level, rng: np.random.Generator, n_sourc
 
     src, src_out = add_outliers(add_noise(model[idx_s], sigma, rng), level.outliers, rng)
     tgt, tgt_out = add_outliers(add_noise(model[idx_t], sigma, rng), level.outliers, rng)
-    src = transform(invert_similarity(T_gt), src)
+    src = apply(invert(T_gt), src)
     return Pair(
         source=src,
         target=tgt,
@@ -274,13 +264,13 @@ def make_real_pair(
     """
     from scipy.spatial import cKDTree
 
-    rigid = np.linalg.inv(pose_tgt) @ pose_src
+    rigid = invert(pose_tgt) @ pose_src
     A = random_similarity(rng, level.s_lo, level.s_hi, level.t_radius * bbox_diagonal(src_scan))
     idx_s = downsample(len(src_scan), n_source, rng)
     idx_t = downsample(len(tgt_scan), int(round(level.density * len(idx_s))), rng)
 
     # overlap: points within 2x the median point spacing of the other scan, both in the target frame
-    src_in_t = transform(rigid, src_scan)
+    src_in_t = apply(rigid, src_scan)
     tree_t, tree_s = cKDTree(tgt_scan), cKDTree(src_in_t)
     spacing_t = np.median(tree_t.query(tgt_scan, k=2)[0][:, 1])
     spacing_s = np.median(tree_s.query(src_in_t, k=2)[0][:, 1])
@@ -288,9 +278,9 @@ def make_real_pair(
     overlap_tgt = float((tree_s.query(tgt_scan[idx_t])[0] < 2 * spacing_s).mean())
 
     return Pair(
-        source=transform(A, src_scan[idx_s]),
+        source=apply(A, src_scan[idx_s]),
         target=tgt_scan[idx_t].copy(),
-        T_gt=rigid @ invert_similarity(A),
+        T_gt=rigid @ invert(A),
         src_outlier=np.zeros(len(idx_s), dtype=bool),
         tgt_outlier=np.zeros(len(idx_t), dtype=bool),
         overlap_src=overlap_src,
@@ -358,7 +348,7 @@ def _finish_pair(model: np.ndarray, idx_s: np.ndarray, idx_t: np.ndarray, src: n
                  src_out: np.ndarray, tgt_out: np.ndarray, in_s: np.ndarray, in_t: np.ndarray,
                  T_gt: np.ndarray) -> Pair:
     """Move the source by inv(T_gt); overlaps from the model-point masks of the two clouds."""
-    return Pair(source=transform(invert_similarity(T_gt), src), target=tgt, T_gt=T_gt, src_outlier=src_out,
+    return Pair(source=apply(invert(T_gt), src), target=tgt, T_gt=T_gt, src_outlier=src_out,
                 tgt_outlier=tgt_out, overlap_src=float(in_t[idx_s].mean()), overlap_tgt=float(in_s[idx_t].mean()))
 
 
@@ -518,7 +508,7 @@ def load_scenes(shared: Path | None) -> tuple[dict[str, np.ndarray], np.ndarray]
     missing = [str(Path(shared) / rel) for rel in needed if not (Path(shared) / rel).is_file()]
     if missing:
         raise click.UsageError(f"level 'scene': missing shared data file(s): {', '.join(missing)}")
-    scenes = {name: read_points(Path(shared) / rel) for name, rel in SCENE_FILES.items()}
+    scenes = {name: load_point_cloud(Path(shared) / rel) for name, rel in SCENE_FILES.items()}
     return scenes, read_gt_log(Path(shared) / KITCHEN_GT_LOG, 0, 4)
 
 
@@ -530,7 +520,7 @@ def generate_special(models: dict[str, np.ndarray], levels: list[str], pairs_per
     """
     combined = []
     for level_name in [lv for lv in levels if lv in SPECIAL_LEVELS]:
-        rows = []
+        rows: list[dict] = []
         for model_name, model in models.items():
             for k in range(pairs_per_model):
                 rng = pair_rng(seed, level_name, model_name, k)
@@ -551,12 +541,12 @@ def generate_special(models: dict[str, np.ndarray], levels: list[str], pairs_per
 
 
 def generate_scene(scenes: dict[str, np.ndarray], T_4to0: np.ndarray, seed: int, out: Path, formats: list[str],
-                   n_source: int = 20000, windows_per_scene: int = SCENE["windows_per_scene"],
-                   real_pairs: int = SCENE["real_pairs"], pcd_encoding: str = "binary") -> list[dict]:
+                   n_source: int = 20000, windows_per_scene: int = int(SCENE["windows_per_scene"]),
+                   real_pairs: int = int(SCENE["real_pairs"]), pcd_encoding: str = "binary") -> list[dict]:
     """Level ``scene``: ``windows_per_scene`` window pairs per scene + ``real_pairs`` draws of the real
     3DMatch redkitchen pair (source fragment 0 moved by a random similarity, target fragment 4 at 1/4-1/2
     density, truth ``inv(T_4to0) @ inv(A)``)."""
-    rows = []
+    rows: list[dict] = []
     for name, scene in scenes.items():
         for k in range(windows_per_scene):
             pair = make_scene_window_pair(scene, pair_rng(seed, "scene", name, k), n_source, SCENE_UP.get(name))
@@ -624,7 +614,7 @@ def generate_synthetic(
     combined = []
     for level_name in levels:
         level = LEVELS[level_name]
-        rows = []
+        rows: list[dict] = []
         for model_name, model in models.items():
             for k in range(pairs_per_model):
                 pair = make_pair(model, level, pair_rng(seed, level_name, model_name, k), n_source)
@@ -646,7 +636,7 @@ def load_scans(scans_dir: Path | None = None, shared: Path | None = None) -> tup
     else:
         folder = Path(scans_dir) if scans_dir is not None else DATA_DIR / "scans"
         poses = read_pose_file(folder / "poses.txt")
-    scans = {n: read_points(folder / f"{n}.ply") for n in names}
+    scans = {n: load_point_cloud(folder / f"{n}.ply") for n in names}
     return scans, poses
 
 
@@ -681,7 +671,7 @@ def load_dragon_scans(shared: Path | None) -> tuple[dict, dict]:
     missing = [str(f) for f in needed if not f.is_file()]
     if missing:
         raise click.UsageError(f"level 'real': missing shared data file(s): {', '.join(missing)}")
-    return {n: read_points(folder / f"{n}.ply") for n in names}, read_pose_file(folder / DRAGON_POSES)
+    return {n: load_point_cloud(folder / f"{n}.ply") for n in names}, read_pose_file(folder / DRAGON_POSES)
 
 
 def generate_real_all(scans: dict, poses: dict, dragon_scans: dict, dragon_poses: dict, recon: np.ndarray, seed: int,
@@ -713,7 +703,7 @@ def generate_real_all(scans: dict, poses: dict, dragon_scans: dict, dragon_poses
             if seen[job[2]] <= per_group:
                 kept.append(job)
         jobs = kept
-    rows = []
+    rows: list[dict] = []
     for rng, pid, model, src, tgt, pose_s, pose_t in jobs:
         pair = make_real_pair(src, tgt, pose_s, pose_t, rng, n_source)
         row = write_pair(out / "real", pid, pair, formats[len(rows) % len(formats)], pcd_encoding)
@@ -728,7 +718,7 @@ def load_models(paths) -> dict[str, np.ndarray]:
         name = Path(p).stem
         if name in models:
             raise click.BadParameter(f"two models named {name!r}")
-        models[name] = read_points(p)
+        models[name] = load_point_cloud(p)
     return models
 
 
@@ -750,26 +740,27 @@ def prepare_shipped_data(shared_dir: str | Path, out_dir: str | Path) -> dict[st
     counts = {}
 
     def save(rel: str, pts: np.ndarray, comment: str) -> None:
-        write_ply(out / rel, pts, dtype="float32", comment=comment)
+        write_ply_float32(out / rel, pts, comment=comment)
         counts[rel] = len(pts)
         log.info("%s: %d points", rel, len(pts))
 
     credit = "Stanford 3D Scanning Repository, Stanford Computer Graphics Laboratory; research use only"
-    bunny = read_points(shared / "stanford/bunny/reconstruction/bun_zipper.ply")
+    bunny = load_point_cloud(shared / "stanford/bunny/reconstruction/bun_zipper.ply")
     save("models/bunny.ply", bunny, f"{credit}\nbun_zipper.ply vertices")
 
     dragon_dir = shared / "stanford/dragon/scans"
     dposes = read_pose_file(dragon_dir / "dragonStandRight_poses_world_from_scan.txt")
-    fused = np.vstack([transform(dposes[n], read_points(dragon_dir / f"{n}.ply")) for n in sorted(dposes)])
+    fused = np.vstack([apply(dposes[n], load_point_cloud(dragon_dir / f"{n}.ply")) for n in sorted(dposes)])
     dragon, voxel = voxel_downsample_to_count(fused, SHIP_MODEL_POINTS)
     n_before = len(dragon)
     dragon = remove_isolated(dragon)  # ~10 stray scanner returns up to 8 cm off the surface inflate the bbox
     save("models/dragon.ply", dragon, f"{credit}\n15 dragonStandRight scans fused in world frame, voxel {voxel:.6g} m, "
          f"{n_before - len(dragon)} isolated points removed")
 
-    kitchen = read_points(shared / "real/3dmatch_redkitchen/cloud_bin_0.ply")
+    kitchen = load_point_cloud(shared / "real/3dmatch_redkitchen/cloud_bin_0.ply")
     kitchen, voxel = voxel_downsample_to_count(kitchen, SHIP_MODEL_POINTS)
-    save("models/redkitchen.ply", kitchen, f"3DMatch 7-scenes-redkitchen cloud_bin_0, voxel {voxel:.6g} m; non-commercial research use")
+    save("models/redkitchen.ply", kitchen,
+         f"3DMatch 7-scenes-redkitchen cloud_bin_0, voxel {voxel:.6g} m; non-commercial research use")
 
     scan_dir = shared / "stanford/bunny/scans"
     bposes = read_pose_file(scan_dir / "bun_poses_world_from_scan.txt")
@@ -781,8 +772,9 @@ def prepare_shipped_data(shared_dir: str | Path, out_dir: str | Path) -> dict[st
         "# Relative ground truth mapping scan B onto scan A:  T_A_from_B = inv(T_A) @ T_B.",
     ]
     for name in SHIP_SCANS:
-        pts, voxel = voxel_downsample_to_count(read_points(scan_dir / f"{name}.ply"), SHIP_SCAN_POINTS)
-        save(f"scans/{name}.ply", pts, f"{credit}\nraw range scan {name}.ply in its own scanner frame, voxel {voxel:.6g} m")
+        pts, voxel = voxel_downsample_to_count(load_point_cloud(scan_dir / f"{name}.ply"), SHIP_SCAN_POINTS)
+        save(f"scans/{name}.ply", pts,
+             f"{credit}\nraw range scan {name}.ply in its own scanner frame, voxel {voxel:.6g} m")
         lines.append(f"{name}.ply")
         lines += [" ".join(repr(float(v)) for v in row) for row in bposes[name]]
     (out / "scans" / "poses.txt").write_text("\n".join(lines) + "\n")
@@ -869,7 +861,8 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
     if real or "real" in level_names:
         if real_full_res and shared is None:
             raise click.UsageError("--real-full-res needs --shared")
-        recon = read_points(DATA_DIR / "models" / "bunny.ply")
+        recon = load_point_cloud(DATA_DIR / "models" / "bunny.ply")
+        assert dragon is not None
         rows += generate_real_all(*load_scans(shared=shared if real_full_res else None), *dragon, recon, seed, out,
                                   fmts, n_source, pcd_encoding=pcd_encoding, per_group=real_per_group)
     rows += generate_special(loaded, special, pairs_per_model, seed, out, fmts, n_source, pcd_encoding)

@@ -104,7 +104,7 @@ def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> None:
         from gctr_cli.report import write_report
 
         write_report(outdir, summary=summary, config=config)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:
         logger.warning("could not write %s: %s", outdir / REPORT_FILE, exc_message(exc))
         logger.debug("report failure", exc_info=True)
 

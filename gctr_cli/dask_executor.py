@@ -1,8 +1,9 @@
 """Run the pairs of a batch on a dask.distributed cluster (``gctr batch --executor dask``).
 
-An executor for :func:`gctr_cli.batch.run_batch` (see :mod:`gctr_cli.executors`): it takes the ``(spec, seed)`` tasks and yields one
-:class:`~gctr_cli.outcome.PairOutcome` per task as the futures complete; the batch process writes the
-outputs exactly as with the local pool (same files, same commit order, ``--resume``, lock).
+An executor for :func:`gctr_cli.batch.run_batch` (see :mod:`gctr_cli.executors`): it takes the
+``(spec, seed)`` tasks and yields one :class:`~gctr_cli.outcome.PairOutcome` per task as the futures
+complete; the batch process writes the outputs exactly as with the local pool (same files, same commit
+order, ``--resume``, lock).
 
 * **Cluster.** With a ``scheduler`` address (``tcp://HOST:8786``) it connects to a running cluster
   (started by hand, by dask-jobqueue on Slurm/PBS/..., by dask-kubernetes, ...). Without one it starts a
@@ -15,10 +16,11 @@ outputs exactly as with the local pool (same files, same commit order, ``--resum
   to the local pool's, bit for bit, whatever the workers' own settings. LocalCluster workers also get
   the variables in their environment before they start.
 * **Bounded submission.** At most twice as many tasks are in flight as the cluster has worker threads
-  (at least one): one running and one waiting per thread, so memory stays bounded for any manifest size, and workers added to an adaptive cluster
-  are used as they join. A worker plugin (:class:`GctrWorkerSetup`) prepares every worker, also those
-  that join later: one-thread native pools and the imports a pair needs, so import time does not
-  count against the first pair's time limit.
+  (at least one): one running and one waiting per thread, so memory stays bounded for any manifest size,
+  and workers added to an adaptive cluster are used as they join. A worker plugin
+  (:class:`GctrWorkerSetup`) prepares every worker, also those that join later: one-thread native
+  pools and the imports a pair needs, so import time does not count against the first pair's time
+  limit.
 * **Failures.** A task whose worker dies (segfault, out-of-memory kill by the nanny) ends in
   ``KilledWorker`` and gives a failed row ``worker died (...)``. The LocalCluster is started with
   ``distributed.scheduler.allowed-failures = 0`` so that, as with the local pool, the first death
@@ -26,10 +28,10 @@ outputs exactly as with the local pool (same files, same commit order, ``--resum
   which also covers preempted nodes). Any other exception of a task gives a failed row naming it.
 * **Time limit** (best effort): a pair running longer than ``batch.time_limit_s`` (measured from when
   its task starts executing on a worker, which the task announces with a dask event; waiting for a
-  worker does not count) gets the failed row ``timed out after N s``; its future is cancelled and its worker process replaced (a Python thread
-  cannot be stopped otherwise): killed at once in our own LocalCluster (its nanny starts a fresh one),
-  restarted through its nanny on an external cluster. A worker without a nanny keeps computing until
-  the pair ends.
+  worker does not count) gets the failed row ``timed out after N s``; its future is cancelled and its
+  worker process replaced (a Python thread cannot be stopped otherwise): killed at once in our own
+  LocalCluster (its nanny starts a fresh one), restarted through its nanny on an external cluster. A
+  worker without a nanny keeps computing until the pair ends.
 * **Lost scheduler.** If the connection to the scheduler is lost (the scheduler process died, the
   network went away), the batch stops with :class:`~gctr_cli.errors.ExecutorLost` (one line from the
   CLI, exit 2); the pairs in flight get no row, the finished pairs are saved and ``--resume`` against
@@ -135,7 +137,7 @@ def _single_threaded() -> Iterator[None]:
         yield
 
 
-class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
+class GctrWorkerSetup(_WorkerPluginBase):
     """Worker plugin: prepares every worker, including those that join or restart later.
 
     Caps native thread pools to one thread (environment variables for pools not yet created,
@@ -153,15 +155,15 @@ class GctrWorkerSetup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
         for var in THREAD_ENV_VARS:
             os.environ[var] = "1"
         try:
-            import gctr_cli.io  # noqa: F401
+            import gctr_cli.io
 
             resolve_register_fn(self.register_ref, self.config)
             if self.snapshots:
-                import matplotlib.backends.backend_agg  # noqa: F401
+                import matplotlib.backends.backend_agg
                 import matplotlib.figure  # noqa: F401
 
                 import gctr_cli.snapshots  # noqa: F401
-        except Exception:  # noqa: BLE001 - run_task reports it per pair
+        except Exception:  # run_task reports it per pair
             logger.debug("gctr worker setup failed", exc_info=True)
         try:
             from threadpoolctl import threadpool_limits
@@ -312,22 +314,23 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
         except OSError:  # CommClosedError: the result cannot be fetched, the scheduler is going away
             raise
         except Exception as exc:  # noqa: BLE001 - e.g. the result cannot be deserialised
-            return failed_outcome(job.spec, job.seed, f"bad result from worker: {exc_message(exc)}", "worker", job.runtime())
+            return failed_outcome(job.spec, job.seed, f"bad result from worker: {exc_message(exc)}", "worker",
+                                  job.runtime())
         if not isinstance(outcome, PairOutcome):
             return failed_outcome(job.spec, job.seed, f"bad result from worker: {type(outcome).__name__}", "worker",
                            job.runtime())
         return outcome
     if status == "error":
         try:
-            exc = future.exception()
+            error = future.exception()
         except OSError:
             raise
         except Exception as err:  # noqa: BLE001
-            exc = err
-        if isinstance(exc, KilledWorker):
-            return failed_outcome(job.spec, job.seed, _killed_message(exc), "worker", job.runtime())
-        return failed_outcome(job.spec, job.seed, f"task failed on its dask worker: {exc_message(exc)}", "worker",
-                       job.runtime())
+            error = err
+        if isinstance(error, KilledWorker):
+            return failed_outcome(job.spec, job.seed, _killed_message(error), "worker", job.runtime())
+        return failed_outcome(job.spec, job.seed, f"task failed on its dask worker: {exc_message(error)}", "worker",
+                              job.runtime())
     return failed_outcome(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
 
 
@@ -414,7 +417,7 @@ def dask_outcomes(
                 try:
                     future = client.submit(run_task, spec, seed, config, register_ref, snapshots, start_topic,
                                            key=f"gctr-{run_id}-{n_submitted}-{spec.pair_id}", pure=False, retries=0)
-                except Exception as exc:  # noqa: BLE001 - the client cannot reach the scheduler
+                except Exception as exc:  # the client cannot reach the scheduler
                     raise _lost(scheduler, len(inflight)) from exc
                 pending.popleft()
                 inflight[future] = _InFlight(spec, seed)
@@ -428,7 +431,7 @@ def dask_outcomes(
                     done, _ = wait(list(inflight), timeout=timeout, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 done = set()
-            except Exception as exc:  # noqa: BLE001 - FuturesCancelledError: scheduler-connection-lost
+            except Exception as exc:  # FuturesCancelledError: scheduler-connection-lost
                 # gctr cancels only futures it no longer waits for: a cancelled one means the scheduler is gone
                 raise _lost(scheduler, len(inflight)) from exc
             for future in [f for f in inflight if f in done]:  # submission order among the finished
@@ -454,10 +457,10 @@ def dask_outcomes(
                 continue
 
             _track_starts(starts, inflight)
-            if not any(job.started is not None for job in inflight.values()):
-                if not waiting_logged and time.monotonic() - min(j.submitted for j in inflight.values()) > 10:
-                    logger.info("waiting for dask workers (%d threads known)", slots if slots > 1 else 0)
-                    waiting_logged = True
+            if (not waiting_logged and not any(job.started is not None for job in inflight.values())
+                    and time.monotonic() - min(j.submitted for j in inflight.values()) > 10):
+                logger.info("waiting for dask workers (%d threads known)", slots if slots > 1 else 0)
+                waiting_logged = True
             now = time.monotonic()
             for future, job in list(inflight.items()):
                 if future.done() or now < job.deadline(time_limit_s):

@@ -4,7 +4,11 @@ before numpy may be loaded)."""
 from __future__ import annotations
 
 import os
+import signal
+import sys
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 #: environment variables that cap native thread pools; set to 1 in every worker before numpy loads
@@ -16,6 +20,37 @@ THREAD_ENV_VARS = (
     "VECLIB_MAXIMUM_THREADS",
     "BLIS_NUM_THREADS",
 )
+
+
+@contextmanager
+def single_thread_env() -> Iterator[None]:
+    """Set every :data:`THREAD_ENV_VARS` to 1 for the ``with`` block, then restore them: a process spawned
+    inside sees them at exec, before it imports numpy."""
+    saved = {var: os.environ.get(var) for var in THREAD_ENV_VARS}
+    try:
+        for var in THREAD_ENV_VARS:
+            os.environ[var] = "1"
+        yield
+    finally:
+        for var, value in saved.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
+
+
+def set_parent_death_signal() -> None:
+    """Linux: this (child) process gets SIGKILL when its parent dies, so a killed batch or benchmark
+    leaves no orphan computing. A no-op elsewhere or if ``prctl`` is unavailable."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        PR_SET_PDEATHSIG = 1
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except Exception:  # noqa: BLE001 - best effort
+        pass
 
 
 def atomic_write(path: str | Path, data: bytes | str) -> None:

@@ -143,7 +143,7 @@ class OutdirLock:
         except FileNotFoundError:
             pass
 
-    def __enter__(self) -> "OutdirLock":
+    def __enter__(self) -> OutdirLock:
         self.acquire()
         return self
 

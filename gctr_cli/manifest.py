@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from gctr_cli.io import SUPPORTED_EXTENSIONS
 from gctr_cli.fsutil import atomic_write
+from gctr_cli.io import SUPPORTED_EXTENSIONS
 
 __all__ = ["ManifestError", "PairSpec", "build_manifest", "read_manifest", "write_manifest"]
 
@@ -147,7 +147,8 @@ def read_manifest(path: str | Path) -> list[PairSpec]:
                 if problem:
                     row_errors.append(f"line {line}: pair_id {pid!r} {problem} (unsafe as a file name)")
                 elif pid in seen:
-                    row_errors.append(f"line {line}: duplicate pair_id '{pid}' (first on line {seen[pid]}, again on line {line})")
+                    row_errors.append(f"line {line}: duplicate pair_id '{pid}' "
+                                      f"(first on line {seen[pid]}, again on line {line})")
                 else:
                     seen[pid] = line
             if row_errors:
@@ -226,7 +227,8 @@ def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:
     for f in sorted(folder.iterdir()):
         # a link counts whatever it points to (a DVC cache file without extension, or something
         # unreadable: the pair's row then says what is wrong with it)
-        if f.name.startswith(".") or not (f.is_symlink() or f.is_file()) or f.suffix.lower() not in SUPPORTED_EXTENSIONS:
+        hidden_or_other = f.name.startswith(".") or f.suffix.lower() not in SUPPORTED_EXTENSIONS
+        if hidden_or_other or not (f.is_symlink() or f.is_file()):
             continue
         found.setdefault(f.stem, []).append(f)
     ambiguous = {s: fs for s, fs in found.items() if len(fs) > 1}
@@ -250,7 +252,8 @@ def build_manifest(
     sdir, tdir = Path(source_dir), Path(target_dir)
     for d, role in ((sdir, "source"), (tdir, "target")) + (((Path(gt_dir), "ground-truth"),) if gt_dir else ()):
         if not d.is_dir():
-            raise ManifestError(f"{d}: {role} folder does not exist" if not d.exists() else f"{d}: {role} path is not a folder")
+            raise ManifestError(f"{d}: {role} folder does not exist" if not d.exists()
+                                else f"{d}: {role} path is not a folder")
     if os.path.realpath(sdir) == os.path.realpath(tdir):
         raise ManifestError(f"{sdir}: source and target folders are the same; every file would pair with itself")
 

@@ -6,24 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def decompose_similarity(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Split ``[[s*R, t], [0, 1]]`` into (s, R, t); s is the cube root of det of the 3x3 block."""
-    T = np.asarray(T, dtype=float)
-    A = T[:3, :3]
-    det = float(np.linalg.det(A))
-    s = abs(det) ** (1.0 / 3.0)
-    if s == 0.0:
-        raise ValueError("matrix has a singular 3x3 block")
-    return s, A / s, T[:3, 3].copy()
-
-
-def compose_similarity(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Build the 4x4 matrix ``[[s*R, t], [0, 0, 0, 1]]``."""
-    T = np.eye(4)
-    T[:3, :3] = scale * np.asarray(rotation, dtype=float)
-    T[:3, 3] = np.asarray(translation, dtype=float)
-    return T
+from gctr_cli.geometry import split
 
 
 def is_similarity(T: np.ndarray, tol: float = 1e-4) -> tuple[bool, str]:
@@ -77,8 +60,8 @@ def transform_errors(T_est: np.ndarray, T_gt: np.ndarray, target_diagonal: float
     turn a tiny rotation error into a huge translation error; scale: ``|s_est/s_gt - 1|``;
     TM: ``||T_est - T_gt||_F`` (the paper's TM error, which does depend on the origin).
     """
-    s_e, R_e, t_e = decompose_similarity(T_est)
-    s_g, R_g, t_g = decompose_similarity(T_gt)
+    s_e, R_e, t_e = split(T_est)
+    s_g, R_g, t_g = split(T_gt)
     c = np.zeros(3) if source_centre is None else np.asarray(source_centre, dtype=float)
     # Written as (s R c + t) differences so large coordinates cancel as early as possible.
     trans = float(np.linalg.norm((t_e - t_g) + (s_e * R_e - s_g * R_g) @ c))

@@ -266,7 +266,7 @@ class Outputs:
             logger.warning("pair %s: %s", outcome.pair_id, w)  # gctr's own are in the message too
         try:
             self._write(outcome)
-        except Exception as exc:  # noqa: BLE001 - one pair's outputs must never end the batch
+        except Exception as exc:  # one pair's outputs must never end the batch
             logger.debug("pair %s: cannot write its outputs", outcome.pair_id, exc_info=True)
             failed = failed_outcome(
                 outcome, outcome.seed, f"cannot write its outputs: {_problem(exc)}", "output", outcome.runtime_s,
@@ -274,7 +274,7 @@ class Outputs:
             )
             try:
                 self._write(failed)
-            except Exception as exc2:  # noqa: BLE001
+            except Exception as exc2:
                 raise BatchError(
                     f"cannot record pair {outcome.pair_id!r} in {self.transforms.path}: {exc_message(exc2)}; the "
                     "pairs finished so far are saved: fix the problem, then rerun with --resume"
@@ -302,7 +302,7 @@ class Outputs:
 
                     write_aligned(outcome.source, outcome.transform, aligned)
             if outcome.snapshot_png is not None:
-                self._write_snapshot(outcome)
+                self._write_snapshot(outcome.pair_id, outcome.snapshot_png)
             if errors_row is not None:
                 self.errors.append(errors_row)
             self.transforms.append(transforms_row)  # the commit
@@ -317,13 +317,13 @@ class Outputs:
                         pass
             raise
 
-    def _write_snapshot(self, outcome: PairOutcome) -> None:
+    def _write_snapshot(self, pair_id: str, png: bytes) -> None:
         try:
             from gctr_cli.snapshots import write_png
 
-            write_png(self.outdir / SNAPSHOTS_DIR / f"{outcome.pair_id}.png", outcome.snapshot_png)
+            write_png(self.outdir / SNAPSHOTS_DIR / f"{pair_id}.png", png)
         except Exception as exc:  # noqa: BLE001 - a snapshot never fails the pair
-            logger.warning("pair %s: cannot write its snapshot: %s", outcome.pair_id, exc_message(exc))
+            logger.warning("pair %s: cannot write its snapshot: %s", pair_id, exc_message(exc))
 
     def close(self) -> None:
         self.transforms.close()

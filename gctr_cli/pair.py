@@ -29,8 +29,8 @@ from gctr_cli.outcome import SNAPSHOT_LOGGER, PairOutcome, exc_message, failed_o
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RegisterFn", "default_register", "derive_seed", "limit_native_threads", "resolve_ref", "resolve_register_fn",
-           "run_pair"]
+__all__ = ["RegisterFn", "default_register", "derive_seed", "limit_native_threads", "resolve_ref",
+           "resolve_register_fn", "run_pair"]
 
 RegisterFn = Callable[..., Any]
 
@@ -40,7 +40,7 @@ def derive_seed(base_seed: int, pair_id: str) -> int:
 
     Independent of the process, the platform, ``PYTHONHASHSEED`` and the order in which pairs run.
     """
-    digest = hashlib.sha256(f"{int(base_seed)}\x1f{pair_id}".encode("utf-8")).digest()
+    digest = hashlib.sha256(f"{int(base_seed)}\x1f{pair_id}".encode()).digest()
     return int.from_bytes(digest[:8], "big") % (2**31)
 
 
@@ -191,7 +191,7 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
     fn = register_fn if register_fn is not None else default_register(config)
     try:
         result = fn(source, target, method_config(config), seed=seed)
-    except Exception as exc:  # noqa: BLE001 - every problem becomes a failed row
+    except Exception as exc:  # every problem becomes a failed row
         logger.debug("pair %s: register raised", spec.pair_id, exc_info=True)
         return failed_outcome(spec, seed, exc_message(exc), "register", elapsed())
 

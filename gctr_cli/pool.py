@@ -18,32 +18,17 @@ import sys
 import time
 from collections import deque
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from multiprocessing.connection import wait as _mp_wait
 from typing import Any
 
 from gctr_cli.config import Config
-from gctr_cli.fsutil import THREAD_ENV_VARS
+from gctr_cli.fsutil import THREAD_ENV_VARS, set_parent_death_signal, single_thread_env
 from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
 from gctr_cli.pair import limit_native_threads, resolve_register_fn, run_pair
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["STARTUP_GRACE_S", "pool_outcomes"]
-
-
-def _set_parent_death_signal() -> None:
-    """Linux: die with the parent (a SIGKILLed batch must not leave orphans computing)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        PR_SET_PDEATHSIG = 1
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    except Exception:  # noqa: BLE001
-        pass
 
 
 class _ListHandler(logging.Handler):
@@ -72,7 +57,7 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     the pair's clock then, so import time does not count against the time limit) and
     ``("done", PairOutcome)`` when it is finished. ``None`` or a closed pipe ends the loop.
     """
-    _set_parent_death_signal()
+    set_parent_death_signal()
     if os.getppid() != parent_pid:  # parent died before prctl took effect
         os._exit(1)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's business
@@ -93,12 +78,13 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     startup_error = None
     register_fn = None
     try:
-        import gctr_cli.io  # noqa: F401 - load everything a pair needs before the first pair
+        import gctr_cli.io  # load everything a pair needs before the first pair
 
         if snapshots:
-            import gctr_cli.snapshots  # noqa: F401
-            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.backends.backend_agg
             import matplotlib.figure  # noqa: F401
+
+            import gctr_cli.snapshots  # noqa: F401
         register_fn = resolve_register_fn(register_ref, config)
     except BaseException as exc:  # noqa: BLE001
         startup_error = f"worker start-up failed: {exc_message(exc)}"
@@ -134,22 +120,6 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     conn.close()
 
 
-@contextmanager
-def _single_thread_env() -> Iterator[None]:
-    """Temporarily set the thread-count variables so a spawned child sees them before numpy loads."""
-    saved = {var: os.environ.get(var) for var in THREAD_ENV_VARS}
-    try:
-        for var in THREAD_ENV_VARS:
-            os.environ[var] = "1"
-        yield
-    finally:
-        for var, value in saved.items():
-            if value is None:
-                os.environ.pop(var, None)
-            else:
-                os.environ[var] = value
-
-
 class _Worker:
     """One long-lived worker process, fed one pair at a time through a pipe."""
 
@@ -161,7 +131,7 @@ class _Worker:
             name="gctr-worker",
             daemon=True,
         )
-        with _single_thread_env():
+        with single_thread_env():
             self.process.start()
         child_conn.close()
         self.spec: Any = None

@@ -68,8 +68,10 @@ figcaption { color: var(--muted); font-size: 12px; }
 .controls { margin: 8px 0; display: flex; gap: 16px; align-items: center; flex-wrap: wrap; }
 .scroll { overflow-x: auto; }
 #pairs { border-collapse: collapse; width: 100%; font-size: 13px; }
-#pairs th, #pairs td { border-bottom: 1px solid var(--line); padding: 4px 6px; text-align: left; vertical-align: middle; }
-#pairs th { background: var(--head); position: sticky; top: 0; cursor: pointer; user-select: none; white-space: nowrap; }
+#pairs th, #pairs td { border-bottom: 1px solid var(--line); padding: 4px 6px; text-align: left;
+  vertical-align: middle; }
+#pairs th { background: var(--head); position: sticky; top: 0; cursor: pointer; user-select: none;
+  white-space: nowrap; }
 #pairs th.nosort { cursor: default; }
 #pairs th[data-key]::after { content: " \\2195"; color: #aaa; font-size: 11px; }
 #pairs th[aria-sort=ascending]::after { content: " \\25B2"; color: #333; }
@@ -171,7 +173,9 @@ _JS = """
       updateFragment();
     }
     th.addEventListener('click', activate);
-    th.addEventListener('keydown', function (e) { if (e.key === 'Enter' || e.key === ' ') { e.preventDefault(); activate(); } });
+    th.addEventListener('keydown', function (e) {
+      if (e.key === 'Enter' || e.key === ' ') { e.preventDefault(); activate(); }
+    });
   });
   if (filter) filter.addEventListener('change', function () { applyFilter(filter.value); updateFragment(); });
   window.addEventListener('hashchange', applyFragment);

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from gctr_cli.fsutil import atomic_write
+from gctr_cli.geometry import apply
 
 __all__ = [
     "MAX_POINTS",
@@ -58,10 +59,6 @@ def subsample(points: np.ndarray | None, max_points: int = MAX_POINTS) -> np.nda
         idx = np.linspace(0, len(pts) - 1, max_points).round().astype(np.int64)
         pts = pts[idx]
     return pts
-
-
-def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    return pts @ T[:3, :3].T + T[:3, 3]
 
 
 def _draw_view(ax: Any, clouds: Sequence[tuple[np.ndarray | None, str, str]], h: int, v: int) -> None:
@@ -116,7 +113,7 @@ def render_snapshot(
 
     if transform is not None and src is not None:
         T = np.asarray(transform, dtype=np.float64)
-        moved = _apply(T, src)
+        moved = apply(T, src)
         for col, (name, hx, vy) in enumerate(VIEWS):
             ax = fig.add_subplot(grid[1, col])
             _draw_view(ax, [(tgt, TARGET_COLOR, "target"), (moved, SOURCE_COLOR, "source")], hx, vy)

@@ -2,14 +2,14 @@
 
 ``dataset`` builds, in ``tmp_path``, pairs whose target is an exact similarity transform of the source
 point by point (``target[i] = T_gt @ source[i]``), in mixed formats (.ply/.pcd/.xyz), with
-ground-truth matrix files and a manifest. Tests that need the real GCTR engine are marked
-``@pytest.mark.engine`` and skipped while the engine is still a placeholder.
+ground-truth matrix files and a manifest. Tests that run the real GCTR engine are marked
+``@pytest.mark.engine``, tests over ~5 s ``@pytest.mark.slow`` (markers registered in pyproject.toml;
+``make test-fast`` leaves the slow ones out).
 """
 
 from __future__ import annotations
 
 import csv
-import inspect
 import math
 import os
 import sys
@@ -19,30 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gctr_cli.geometry import apply, to_matrix
+
 TESTS_DIR = Path(__file__).resolve().parent
 REPO = TESTS_DIR.parent
-
-
-def pytest_configure(config):
-    config.addinivalue_line("markers", "engine: end-to-end test with the real GCTR engine (skipped until it exists)")
-
-
-def engine_available() -> bool:
-    try:
-        from gctr_cli.engine import gctr
-    except Exception:  # noqa: BLE001
-        return False
-    src = inspect.getsource(gctr.register)
-    return not ("raise NotImplementedError" in src and (gctr.__doc__ or "").lower().startswith("placeholder"))
-
-
-def pytest_collection_modifyitems(config, items):
-    if engine_available():
-        return
-    skip = pytest.mark.skip(reason="the GCTR engine is still a placeholder (NotImplementedError)")
-    for item in items:
-        if "engine" in item.keywords:
-            item.add_marker(skip)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -51,6 +31,7 @@ def pytest_collection_modifyitems(config, items):
 
 
 def rotation(axis, angle_deg: float) -> np.ndarray:
+    """Rotation by ``angle_deg`` degrees about ``axis`` (Rodrigues)."""
     axis = np.asarray(axis, float)
     axis = axis / np.linalg.norm(axis)
     a = math.radians(angle_deg)
@@ -58,20 +39,15 @@ def rotation(axis, angle_deg: float) -> np.ndarray:
     return np.eye(3) + math.sin(a) * K + (1 - math.cos(a)) * K @ K
 
 
-def similarity(scale: float, R: np.ndarray, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = scale * R
-    T[:3, 3] = t
-    return T
-
-
 def random_similarity(rng: np.random.Generator, max_angle: float = 40.0) -> np.ndarray:
+    """A moderate similarity: rotation of 5-``max_angle`` degrees, scale in [0.5, 2], translation in [-3, 3]^3."""
     R = rotation(rng.normal(size=3), rng.uniform(5.0, max_angle))
-    return similarity(float(rng.uniform(0.5, 2.0)), R, rng.uniform(-3, 3, 3))
+    return to_matrix(float(rng.uniform(0.5, 2.0)), R, rng.uniform(-3, 3, 3))
 
 
-def apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    return pts @ T[:3, :3].T + T[:3, 3]
+def translation(offset) -> np.ndarray:
+    """The 4x4 pure translation by ``offset``."""
+    return to_matrix(1.0, np.eye(3), offset)
 
 
 def bumpy_surface(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -191,13 +167,18 @@ def fast_config():
     return config_from_dict({"seed": 7, "batch": {"workers": 2, "time_limit_s": 30}})
 
 
-@pytest.fixture
-def subprocess_env():
+def make_subprocess_env() -> dict[str, str]:
     """Environment for ``python -m gctr_cli`` / driver subprocesses: the tests folder importable."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(TESTS_DIR), str(REPO)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS_DIR), str(REPO), *filter(None, [env.get("PYTHONPATH")])])
     env.pop("COLUMNS", None)
     return env
+
+
+@pytest.fixture
+def subprocess_env():
+    """:func:`make_subprocess_env` for one test."""
+    return make_subprocess_env()
 
 
 PYTHON = sys.executable

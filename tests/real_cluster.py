@@ -30,20 +30,18 @@ class RealCluster:
         self.address = ""
 
     def _popen(self, args: list[str], log: str) -> subprocess.Popen:
-        fh = open(self.workdir / log, "wb")
-        try:
+        with open(self.workdir / log, "wb") as fh:  # the child keeps its own copy of the descriptor
             return subprocess.Popen([str(BIN / "dask"), *args], env=self.env, stdout=fh, stderr=subprocess.STDOUT,
                                     cwd=self.workdir, start_new_session=True)
-        finally:
-            fh.close()
 
-    def start(self) -> "RealCluster":
+    def start(self) -> RealCluster:
         self.scheduler = self._popen(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
                                       "--scheduler-file", str(self.scheduler_file)], "scheduler.log")
         deadline = time.monotonic() + self.timeout
         while not self.address:
             if time.monotonic() > deadline or self.scheduler.poll() is not None:
-                raise RuntimeError(f"dask scheduler did not start: {(self.workdir / 'scheduler.log').read_text()[-2000:]}")
+                log = (self.workdir / "scheduler.log").read_text()[-2000:]
+                raise RuntimeError(f"dask scheduler did not start: {log}")
             try:
                 self.address = json.loads(self.scheduler_file.read_text())["address"]
             except (OSError, ValueError, KeyError):
@@ -84,7 +82,7 @@ class RealCluster:
             except subprocess.TimeoutExpired:
                 pass
 
-    def __enter__(self) -> "RealCluster":
+    def __enter__(self) -> RealCluster:
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -1,6 +1,6 @@
 """Batch runner: outputs, per-pair failures, worker death, timeouts, kill + resume, reproducibility, lock.
 
-These tests use the deterministic fake engine of ``fake_engine.py`` (exact Umeyama on index
+These tests use the deterministic fake engine of ``data_scripts/fake_engine.py`` (exact Umeyama on index
 correspondences), so they check the batch machinery, not the algorithm; they run in seconds.
 """
 
@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-import fake_engine
 from conftest import PYTHON, read_csv, row_matrix, write_cloud
+
+from data_scripts import fake_engine
 from gctr_cli import batch
 from gctr_cli.batch import (
     ERRORS_COLUMNS,
@@ -271,6 +271,7 @@ def test_timeout_kills_the_pair_and_batch_goes_on(four_pairs, tmp_path):
     assert sum(r["status"] == "ok" for r in rows.values()) == 5
 
 
+@pytest.mark.slow
 def test_results_do_not_depend_on_worker_count(four_pairs, fast_config, tmp_path):
     for i in range(3):
         four_pairs.add_pair(f"extra{i}", exts=(".pcd", ".pcd"))
@@ -350,7 +351,7 @@ def test_resume_refuses_a_different_config(four_pairs, fast_config, tmp_path):
 DRIVER = textwrap.dedent(
     """
     import sys
-    import fake_engine
+    from data_scripts import fake_engine
     from gctr_cli.batch import run_batch
     from gctr_cli.config import config_from_dict
     from gctr_cli.manifest import read_manifest
@@ -383,6 +384,7 @@ def _alive(pid: int) -> bool:
     return fields[0] not in ("Z", "X")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc and SIGKILL")
 def test_sigkill_mid_run_then_resume_gives_every_pair_once(dataset, tmp_path, subprocess_env):
     exts = [(".ply", ".pcd"), (".pcd", ".xyz"), (".xyz", ".ply"), (".ply", ".ply")]

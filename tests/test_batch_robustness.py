@@ -12,9 +12,9 @@ import functools
 
 import pytest
 from click.testing import CliRunner
-
-import fake_engine
 from conftest import read_csv
+
+from data_scripts import fake_engine
 from gctr_cli import batch, cli, outdir
 from gctr_cli.batch import BatchError, run_batch
 from gctr_cli.manifest import MAX_PAIR_ID_BYTES, PairSpec
@@ -113,7 +113,7 @@ def test_a_transforms_csv_that_takes_no_row_stops_the_batch(four_pairs, fast_con
 
     monkeypatch.setattr(outdir.RowLog, "append", append)
     out = tmp_path / "out"
-    with pytest.raises(BatchError, match="cannot record pair 'xyz_ply'.*rerun with --resume"):
+    with pytest.raises(BatchError, match=r"cannot record pair 'xyz_ply'.*rerun with --resume"):
         run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
     rows = by_id(out / "transforms.csv")
     assert "xyz_ply" not in rows and all(r["status"] == "ok" for r in rows.values())

@@ -9,8 +9,8 @@ import math
 from pathlib import Path
 
 import pytest
+from conftest import REPO, read_csv
 
-from conftest import REPO
 from data_scripts import bench_compare as bc
 from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
 
@@ -47,7 +47,8 @@ def make_fake_run(work: Path) -> list[bc.BatchRun]:
         for k, e in enumerate(pairs):
             pid = f"{level}_{k}"
             if e is None:
-                trows.append([pid, "s.ply", "t.ply", "failed", "too weak evidence", ""] + [""] * 16 + ["", "", "", "2.0", "1"])
+                trows.append([pid, "s.ply", "t.ply", "failed", "too weak evidence", "", *[""] * 16,
+                              "", "", "", "2.0", "1"])
                 continue
             rot, tr, sc, t = e
             trows.append([pid, "s.ply", "t.ply", "ok", "", "1.5"] + ["0"] * 16 + ["0.9", "", "0.01", repr(t), "1"])
@@ -115,7 +116,7 @@ def test_report_from_a_hand_made_run(tmp_path):
     for png in (bc.CDF_PNG, bc.TIME_PNG):
         assert f"]({png})" in text
         assert (out.parent / png).read_bytes()[:8] == PNG_MAGIC
-    rows = list(csv.DictReader(open(work / "rows.csv")))
+    rows = read_csv(work / "rows.csv")[1]
     assert len(rows) == 8 and {r["method"] for r in rows} == {"gctr", "fgr"}
 
 
@@ -133,7 +134,7 @@ def test_tiny_end_to_end_run_and_report_only(tmp_path):
     for png in (bc.CDF_PNG, bc.TIME_PNG):
         assert (out.parent / png).read_bytes()[:8] == PNG_MAGIC
     for method in ("gctr", "icp"):
-        _, = list(csv.DictReader(open(work / "results" / method / "easy" / "transforms.csv")))
+        (_,) = read_csv(work / "results" / method / "easy" / "transforms.csv")[1]
         assert (work / "configs" / f"{method}.yaml").read_text().startswith(f"method: {method}")
     saved = json.loads((work / "run.json").read_text())
     assert [(r["method"], r["level"]) for r in saved["runs"]] == [("gctr", "easy"), ("icp", "easy")]
@@ -161,7 +162,8 @@ def _verdict_rows(method="gctr", level="part"):
 
 def test_outcomes_and_outcome_table():
     rows = _verdict_rows()
-    assert [common.outcome(r) for r in rows] == ["success", "success", "silent_wrong", "silent_wrong", "failed", "failed"]
+    assert [common.outcome(r) for r in rows] == ["success", "success", "silent_wrong", "silent_wrong", "failed",
+                                                 "failed"]
     assert common.outcome({"status": "timeout", "success": False}) == "failed"
     assert common.outcome_counts(rows) == {"success": 2, "silent_wrong": 2, "failed": 2, "pairs": 6}
     table = common.outcome_table([("gctr", "part", rows)], "runtime_s")

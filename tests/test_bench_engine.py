@@ -25,10 +25,10 @@ TIMING_COLUMNS = {"time_s", "cpu_s", "load_s", "rss_baseline_mb", "peak_rss_mb",
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory) -> Path:
     """``pairs.csv`` with one easy and one cross bunny pair (3000-point sources), as the generator writes it."""
-    from data_scripts.common import read_points
+    from gctr_cli.io import load_point_cloud
 
     out = tmp_path_factory.mktemp("bench") / "data"
-    bunny = read_points(mb.DATA_DIR / "models" / "bunny.ply")
+    bunny = load_point_cloud(mb.DATA_DIR / "models" / "bunny.ply")
     rows = []
     for level in ("easy", "cross"):
         pair = mb.make_pair(bunny, mb.LEVELS[level], mb.pair_rng(0, level, "bunny", 0), n_source=3000)
@@ -58,6 +58,7 @@ def level_row(report: str, level: str) -> list[str]:
     raise AssertionError(f"no table row for level {level}")
 
 
+@pytest.mark.slow
 def test_cli_writes_csv_and_report_consistent_with_it(tiny_data, tmp_path):
     out, pairs_csv = tmp_path / "ENGINE.md", tmp_path / "t_pairs.csv"
     proc = run_cli("--data", str(tiny_data), "--levels", "easy,cross", "--variant", "t", "--out", str(out),
@@ -142,7 +143,8 @@ def test_quick_keeps_first_three_pairs_per_model_and_level(tmp_path):
     mb.write_manifest(tmp_path / "pairs.csv", rows)
     config, d = be.resolve_config(None, [])
     tasks = be.load_tasks(tmp_path / "pairs.csv", ["hard", "cross"], True, config, d)
-    assert [t["pair_id"] for t in tasks] == [f"{lv}_{m}_{k}" for lv in ("hard", "cross") for m in "ab" for k in range(3)]
+    assert [t["pair_id"] for t in tasks] == [f"{lv}_{m}_{k}" for lv in ("hard", "cross") for m in "ab"
+                                             for k in range(3)]
     assert len({t["seed"] for t in tasks}) == len(tasks)
     assert len(be.load_tasks(tmp_path / "pairs.csv", ["cross"], False, config, d)) == 10
     with pytest.raises(be.BenchError, match="no pairs for level"):
@@ -172,7 +174,8 @@ def test_stage_table_and_failed_list_render():
     assert "| other | 0.300 (15%) |" in text and "| **total** | 2.000 (100%) |" in text
     assert "| refine |" not in text  # a stage that never ran is left out
     assert re.search(r"\| p2 \| cross \| failed \| 90 \| 1 \| 0\.5 \| 3\.00 \| too weak \\\| evidence \|", text)
-    assert "other processes were running, but the pairs were not starved of CPU (median wall/CPU time ratio 1.07)" in text
+    assert ("other processes were running, but the pairs were not starved of CPU "
+            "(median wall/CPU time ratio 1.07)") in text
     rows[1]["time_s"] = 6.0  # wall twice the CPU time: contention
     assert "they took CPU from the benchmark" in be.render_section(rows, ["cross"], info)
 

@@ -1,8 +1,8 @@
 """The ``gctr`` command line: help, config, manifest, register and batch (exit codes 0/1/2/3).
 
-Batch and register tests swap in the deterministic fake engine (``fake_engine.py``) through
+Batch and register tests swap in the deterministic fake engine (``data_scripts/fake_engine.py``) through
 monkeypatch, so the production command path is exercised with everything but the algorithm.
-Tests marked ``engine`` run the real GCTR engine end to end (skipped while it is a placeholder).
+Tests marked ``engine`` run the real GCTR engine end to end.
 """
 
 from __future__ import annotations
@@ -16,23 +16,22 @@ import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner
-
-import fake_engine
 from conftest import (
     PYTHON,
     REPO,
-    apply,
     bumpy_surface,
     read_csv,
     rotation,
     row_matrix,
-    similarity,
     write_cloud,
     write_manifest_rows,
 )
+
+from data_scripts import fake_engine
 from gctr_cli import batch, cli
 from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
 from gctr_cli.config import Config, config_from_dict
+from gctr_cli.geometry import apply, to_matrix
 from gctr_cli.io import load_point_cloud, read_matrix, write_matrix
 
 
@@ -277,6 +276,7 @@ def test_batch_write_aligned(runner, fake_batch, four_pairs, tmp_path):
                                    atol=1e-6 * np.abs(moved).max())
 
 
+@pytest.mark.slow
 def test_batch_exit_1_and_3(runner, fake_batch, four_pairs, tmp_path):
     ds = four_pairs
     (ds.root / "empty.pcd").write_bytes(b"")
@@ -355,7 +355,7 @@ def test_batch_lock_refusal_via_cli(runner, fake_batch, four_pairs, tmp_path):
 CLI_DRIVER = textwrap.dedent(
     """
     import functools, sys
-    import fake_engine
+    from data_scripts import fake_engine
     from gctr_cli import batch, cli
 
     if __name__ == "__main__":
@@ -365,6 +365,7 @@ CLI_DRIVER = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, subprocess_env):
     import signal
     import time
@@ -386,7 +387,7 @@ def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, 
             assert proc.poll() is None, proc.communicate()
             time.sleep(0.02)
         proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=30)
+        _stdout, stderr = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -439,7 +440,7 @@ def _real_pairs(root: Path) -> tuple[Path, dict[str, np.ndarray]]:
         t = rng.uniform(-1, 1, 3) * diag
         if pid.endswith("utm"):
             t = t + np.array([4.6e5, 5.2e6, 300.0])
-        T = similarity(scale, rotation(rng.normal(size=3), angle), t)
+        T = to_matrix(scale, rotation(rng.normal(size=3), angle), t)
         tgt = apply(T, tgt_model) + rng.normal(scale=0.003 * diag * scale, size=(len(tgt_model), 3))
         s_path = write_cloud(root / "src" / f"{pid}{se}", src)
         t_path = write_cloud(root / "tgt" / f"{pid}{te}", tgt)
@@ -452,7 +453,7 @@ def _real_pairs(root: Path) -> tuple[Path, dict[str, np.ndarray]]:
 
 @pytest.mark.engine
 def test_real_engine_batch_end_to_end(tmp_path, subprocess_env):
-    manifest, gts = _real_pairs(tmp_path / "data")
+    manifest, _gts = _real_pairs(tmp_path / "data")
     out2 = gctr("batch", manifest, "-o", tmp_path / "j2", "-j", 2, "--min-success", 0.75, env=subprocess_env)
     assert out2.returncode == 0, out2.stdout + out2.stderr
     assert "pairs: 4 (4 ok, 0 failed)" in out2.stdout

@@ -2,7 +2,7 @@
 
 Most tests share one module-scoped LocalCluster (connected to through its address, like a real
 cluster); the CLI test starts its own (``--executor dask`` without ``--scheduler``). They use the
-deterministic fake engine of ``fake_engine.py``; one test runs a small pair through the real engine.
+deterministic fake engine of ``data_scripts/fake_engine.py``; one test runs a small pair through the real engine.
 """
 
 from __future__ import annotations
@@ -18,11 +18,13 @@ from click.testing import CliRunner
 
 distributed = pytest.importorskip("distributed")
 
-import fake_engine  # noqa: E402
-from conftest import apply, bumpy_surface, read_csv, rotation, similarity, write_cloud, write_manifest_rows  # noqa: E402
+from conftest import bumpy_surface, read_csv, rotation, write_cloud, write_manifest_rows  # noqa: E402
+
+from data_scripts import fake_engine  # noqa: E402
 from gctr_cli import batch, cli, dask_executor  # noqa: E402
 from gctr_cli.batch import BatchError, derive_seed, run_batch  # noqa: E402
 from gctr_cli.config import config_from_dict  # noqa: E402
+from gctr_cli.geometry import apply, to_matrix  # noqa: E402
 from gctr_cli.io import read_matrix, write_matrix  # noqa: E402
 
 
@@ -57,6 +59,7 @@ def outputs(outdir: Path):
     return rows, errs, mats
 
 
+@pytest.mark.slow
 def test_dask_matches_the_local_pool_and_reports_failures(four_pairs, fast_config, tmp_path, scheduler):
     ds = four_pairs
     for i in range(3):
@@ -88,7 +91,8 @@ def test_dask_matches_the_local_pool_and_reports_failures(four_pairs, fast_confi
     assert d_errs == l_errs and d_mats == l_mats
     assert d_rows["raises"]["message"] == "ValueError: degenerate input: the source cloud is planar"
     assert d_rows["missing"]["message"].endswith("nope.ply: file does not exist")
-    assert d_rows["nan_pts"]["message"].startswith("warning: ") and "dropped 2 of 202 points" in d_rows["nan_pts"]["message"]
+    nan_message = d_rows["nan_pts"]["message"]
+    assert nan_message.startswith("warning: ") and "dropped 2 of 202 points" in nan_message
     assert (summary.n_ok, summary.n_failed) == (9, 3)
     assert (tmp_path / "dask" / "report.html").exists()
     assert not (tmp_path / "dask" / batch.LOCK_NAME).exists()
@@ -118,6 +122,7 @@ def test_dask_resume_finishes_a_partial_run(four_pairs, fast_config, tmp_path, s
     }
 
 
+@pytest.mark.slow
 def test_time_limit_on_an_external_cluster_keeps_the_cluster_usable(dataset, tmp_path, scheduler):
     """On a cluster gctr does not own, a timed-out pair fails alone and the cluster stays usable.
 
@@ -145,6 +150,7 @@ def test_time_limit_on_an_external_cluster_keeps_the_cluster_usable(dataset, tmp
         client.close()
 
 
+@pytest.mark.slow
 def test_cli_dask_local_cluster_with_time_limit(dataset, tmp_path, monkeypatch):
     """``--executor dask`` without an address starts (and closes) its own LocalCluster of -j workers."""
     monkeypatch.setattr(batch, "run_batch", functools.partial(batch.run_batch, register_fn=fake_engine.register))
@@ -203,7 +209,7 @@ def test_real_engine_pair_is_identical_on_dask_and_local(tmp_path, scheduler):
     rng = np.random.default_rng(99)
     root = tmp_path / "data"
     src = bumpy_surface(rng, 1500)
-    T = similarity(1.6, rotation([0.3, -1.0, 0.4], 35.0), [0.5, -1.2, 2.0])
+    T = to_matrix(1.6, rotation([0.3, -1.0, 0.4], 35.0), [0.5, -1.2, 2.0])
     tgt = apply(T, bumpy_surface(rng, 2000)) + rng.normal(scale=0.004, size=(2000, 3))
     write_cloud(root / "a.ply", src)
     write_cloud(root / "b.pcd", tgt)

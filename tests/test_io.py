@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from gctr_cli import fsutil
+from gctr_cli.geometry import random_rotation, to_matrix
 from gctr_cli.io import (
     SUPPORTED_EXTENSIONS,
     MatrixError,
@@ -199,7 +200,8 @@ def test_ply_binary_element_with_lists_before_vertex(tmp_path, rng):
 def test_ply_binary_vertex_with_list_property(tmp_path, rng):
     pts = rng.normal(size=(15, 3))
     body = b"".join(
-        struct.pack("<d", p[0]) + struct.pack("<B", k) + struct.pack(f"<{k}h", *range(k)) + struct.pack("<dd", p[1], p[2])
+        struct.pack("<d", p[0]) + struct.pack("<B", k) + struct.pack(f"<{k}h", *range(k))
+        + struct.pack("<dd", p[1], p[2])
         for k, p in zip(range(15), pts)
     )
     hdr = ply_header(
@@ -227,7 +229,8 @@ def test_ply_ascii_element_before_vertex_and_list_in_vertex(tmp_path, rng):
 
 def test_ply_crlf_header(tmp_path, cloud):
     body = "\r\n".join(" ".join(repr(v) for v in p) for p in cloud.tolist())
-    hdr = "ply\r\nformat ascii 1.0\r\nelement vertex 200\r\nproperty double x\r\nproperty double y\r\nproperty double z\r\nend_header\r\n"
+    hdr = ("ply\r\nformat ascii 1.0\r\nelement vertex 200\r\n"
+           "property double x\r\nproperty double y\r\nproperty double z\r\nend_header\r\n")
     path = tmp_path / "crlf.ply"
     path.write_bytes((hdr + body + "\r\n").encode())
     np.testing.assert_array_equal(load_point_cloud(path), cloud)
@@ -337,7 +340,8 @@ def test_lzf_repeating_patterns(tmp_path):
 def test_pcd_binary_field_order_padding_and_counts(tmp_path, rng):
     n = 40
     pts = rng.normal(size=(n, 3))
-    dt = np.dtype([("y", "<f8"), ("pad", "u1", (3,)), ("rgb", "<u4"), ("x", "<f8"), ("hist", "<f4", (4,)), ("z", "<f8")])
+    dt = np.dtype([("y", "<f8"), ("pad", "u1", (3,)), ("rgb", "<u4"), ("x", "<f8"), ("hist", "<f4", (4,)),
+                   ("z", "<f8")])
     rec = np.zeros(n, dt)
     rec["x"], rec["y"], rec["z"] = pts.T
     hdr = (
@@ -461,7 +465,8 @@ def test_text_variants(tmp_path, rng):
         "ws.xyz": "\n".join(rows_ws),
         "csv.txt": "X,Y,Z,intensity\n" + "\n".join(rows_csv),
         "count.pts": "25\n" + "\n".join(rows_ws),
-        "comments.xyz": "# exported\n//X Y Z\n\n" + "\n".join(rows_ws[:10]) + "\n# mid comment\n\n" + "\n".join(rows_ws[10:]),
+        "comments.xyz": ("# exported\n//X Y Z\n\n" + "\n".join(rows_ws[:10]) + "\n# mid comment\n\n"
+                         + "\n".join(rows_ws[10:])),
         "crlf.txt": "\r\n".join(rows_csv) + "\r\n",
     }
     for name, text in cases.items():
@@ -695,13 +700,8 @@ def test_saved_file_permissions_follow_umask(tmp_path, cloud):
 
 
 def _random_similarity(rng) -> np.ndarray:
-    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    T = np.eye(4)
-    T[:3, :3] = rng.uniform(0.1, 10) * q
-    T[:3, 3] = rng.normal(size=3) * np.array([1e-7, 1e3, 1e6])
-    return T
+    """Scale 0.1-10 and translations of very different magnitudes (1e-7 to 1e6): hard to print exactly."""
+    return to_matrix(rng.uniform(0.1, 10), random_rotation(rng), rng.normal(size=3) * np.array([1e-7, 1e3, 1e6]))
 
 
 def test_matrix_round_trip_bit_exact(tmp_path, rng):

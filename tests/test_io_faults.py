@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-import fake_engine
 from conftest import read_csv, write_manifest_rows
+
+from data_scripts import fake_engine
 from gctr_cli.config import Config
 from gctr_cli.io import PointCloudError, load_point_cloud, save_point_cloud
 from gctr_cli.io.errors import MAX_MESSAGE
@@ -136,8 +136,8 @@ def test_lzf_data_that_decompresses_to_the_wrong_size_is_refused(tmp_path):
 
     raw = PTS.astype("<f4").T.tobytes()
     comp = lzf.compress(raw, 2 * len(raw) + 16)  # random floats do not shrink: allow growth
-    header = ("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 50\nHEIGHT 1\nPOINTS 50\n"
-              "DATA binary_compressed\n").encode()
+    header = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 50\nHEIGHT 1\nPOINTS 50\n"
+              b"DATA binary_compressed\n")
     (tmp_path / "ok.pcd").write_bytes(header + struct.pack("<II", len(comp), len(raw)) + comp)
     np.testing.assert_array_equal(load_point_cloud(tmp_path / "ok.pcd"), PTS.astype(np.float32))
     bad = bytearray(comp)
@@ -168,7 +168,7 @@ def test_text_without_line_ends_is_refused_with_bounded_memory(tmp_path):
 def test_control_characters_and_huge_names_never_reach_the_message(tmp_path):
     name = "x\x00\x1b[31mRED\x1b[0m\u202e" + "n" * 60_000
     header = (f"ply\nformat ascii 1.0\nelement vertex 1\nproperty float {name}\nproperty float y\n"
-              "property float z\nend_header\n1 2 3\n").encode("utf-8")
+              "property float z\nend_header\n1 2 3\n").encode()
     (tmp_path / "esc.ply").write_bytes(header)
     msg = load_error(tmp_path / "esc.ply", "has no x field")
     assert "RED" in msg and "\x1b" not in msg and "..." in msg

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import REPO, rotation
 
-from conftest import REPO, apply, rotation, similarity
 from gctr_cli import cli
+from gctr_cli.geometry import apply, to_matrix
 from gctr_cli.io import (
     SUPPORTED_EXTENSIONS,
     WRITE_EXTENSIONS,
@@ -72,7 +73,7 @@ def test_las_laz_keep_utm_coordinates_exactly_and_attributes(tmp_path, name, ver
 
 
 def test_las_truncated_and_lying_headers_are_refused_before_allocating(tmp_path):
-    expected, _ = utm_las(tmp_path / "ok.las", n=500)
+    _expected, _ = utm_las(tmp_path / "ok.las", n=500)
     data = (tmp_path / "ok.las").read_bytes()
     (tmp_path / "cut.las").write_bytes(data[: len(data) - 100])
     with pytest.raises(PointCloudError, match=r"cut\.las: truncated: the header declares 500 points"):
@@ -212,7 +213,7 @@ def test_every_read_extension_is_listed_and_writers_cover_all_but_e57():
 
 
 def test_transform_rotates_normals_and_moves_utm_points_precisely(rich_cloud):
-    T = similarity(2.0, rotation([1, 1, 0], 30), [-499_000.0, 10.0, 3.0])
+    T = to_matrix(2.0, rotation([1, 1, 0], 30), [-499_000.0, 10.0, 3.0])
     moved = transform_cloud(rich_cloud, T)
     exact = apply(T, rich_cloud.points - UTM) + T[:3, :3] @ UTM  # reference without the big offset
     np.testing.assert_allclose(moved.points, exact, rtol=0, atol=1e-9 * np.abs(exact).max())
@@ -224,7 +225,7 @@ def test_transform_rotates_normals_and_moves_utm_points_precisely(rich_cloud):
 
 def test_write_aligned_checks_matrix_and_output_before_reading(tmp_path, rich_cloud):
     write_point_cloud(tmp_path / "in.ply", rich_cloud)
-    T = similarity(0.5, rotation([0, 0, 1], 90), [1.0, 2.0, 3.0])
+    T = to_matrix(0.5, rotation([0, 0, 1], 90), [1.0, 2.0, 3.0])
     moved = write_aligned(tmp_path / "in.ply", T, tmp_path / "sub" / "out.laz")
     assert len(moved) == 300 and (tmp_path / "sub" / "out.laz").exists()
     with pytest.raises(PointCloudError, match=r"out\.e57: unsupported extension '\.e57' for writing"):
@@ -240,7 +241,7 @@ def test_write_aligned_checks_matrix_and_output_before_reading(tmp_path, rich_cl
 
 def test_gctr_apply_writes_the_moved_cloud_in_the_output_format(tmp_path, rich_cloud):
     write_point_cloud(tmp_path / "scan.laz", rich_cloud)
-    T = similarity(1.5, rotation([0, 1, 0], 20), [10.0, -5.0, 0.25])
+    T = to_matrix(1.5, rotation([0, 1, 0], 20), [10.0, -5.0, 0.25])
     write_matrix(tmp_path / "T.txt", T)
     res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "T.txt"), str(tmp_path / "scan.laz"),
                                         "-o", str(tmp_path / "moved.ply")])
@@ -262,7 +263,7 @@ def test_gctr_apply_writes_the_moved_cloud_in_the_output_format(tmp_path, rich_c
 def bunny_pair(folder: Path):
     """bunny.ply as a LAZ source and, moved by a UTM-size similarity, as a two-scan E57 target."""
     src = load_point_cloud(BUNNY)
-    T = similarity(2.5, rotation([1, -2, 0.5], 50), UTM + [3.0, -7.0, 0.0])
+    T = to_matrix(2.5, rotation([1, -2, 0.5], 50), UTM + [3.0, -7.0, 0.0])
     tgt = apply(T, src)
     write_point_cloud(folder / "a.laz", PointCloud(src, {"intensity": np.arange(len(src), dtype=np.uint16)}))
     e = pye57.E57(str(folder / "b.e57"), mode="w")
@@ -296,8 +297,8 @@ def test_register_laz_onto_e57_writes_the_aligned_cloud(tmp_path):
 
 
 def test_register_aligned_with_unwritable_extension_fails_before_registering(tmp_path, monkeypatch):
-    import fake_engine
     import gctr_cli.engine
+    from data_scripts import fake_engine
 
     monkeypatch.setattr(gctr_cli.engine, "register", fake_engine.register)
     called = []

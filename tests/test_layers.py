@@ -12,10 +12,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
-
 from conftest import REPO
 
 #: the modules of the batch layer (issue 12) and the report built on its summary
@@ -54,10 +52,11 @@ def test_no_batch_module_is_over_600_lines(name):
 
 DRIVER = """
 import atexit, json, sys
-import fake_engine
+from data_scripts import fake_engine
 import gctr_cli.methods
 gctr_cli.methods.get_register_fn = lambda method: fake_engine.register
-atexit.register(lambda: print("MODULES " + json.dumps(sorted(m for m in sys.modules if m.startswith(("gctr_cli", "distributed", "dask"))))))
+atexit.register(lambda: print("MODULES " + json.dumps(
+    sorted(m for m in sys.modules if m.startswith(("gctr_cli", "distributed", "dask"))))))
 from gctr_cli import cli
 sys.argv = ["gctr"] + sys.argv[1:]
 cli.main()

@@ -141,7 +141,8 @@ def test_duplicate_column(tmp_path):
 
 
 def test_duplicate_pair_id(tmp_path):
-    m = write(tmp_path / "dup.csv", "pair_id,source,target\nscan1,a.ply,b.ply\nscan2,c.ply,d.ply\n\nscan1,e.ply,f.ply\n")
+    m = write(tmp_path / "dup.csv",
+              "pair_id,source,target\nscan1,a.ply,b.ply\nscan2,c.ply,d.ply\n\nscan1,e.ply,f.ply\n")
     with pytest.raises(ManifestError) as ei:
         read_manifest(m)
     assert_error(ei, m, "duplicate pair_id 'scan1'", "line 2", "line 5")

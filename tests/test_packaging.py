@@ -8,8 +8,9 @@ import sys
 from importlib import metadata, resources
 from pathlib import Path
 
-import gctr_cli
 from conftest import REPO
+
+import gctr_cli
 
 DIST = "gctr-cli"  # the distribution name (pyproject [project] name); the import package is gctr_cli
 

@@ -19,28 +19,24 @@ import pytest
 
 distributed = pytest.importorskip("distributed")
 
-from conftest import Dataset, read_csv  # noqa: E402
+from conftest import Dataset, make_subprocess_env, read_csv  # noqa: E402
 from real_cluster import RealCluster  # noqa: E402
 
-import fake_engine  # noqa: E402
+from data_scripts import fake_engine  # noqa: E402
 from gctr_cli.batch import run_batch  # noqa: E402
 from gctr_cli.config import config_from_dict  # noqa: E402
 
 N_PAIRS = 12
 CONFIG = {"seed": 7, "batch": {"workers": 2, "time_limit_s": 60}}
 #: ``gctr`` with the fake engine (the CLI has no option to choose a register function)
-DRIVER = ("import functools, sys, fake_engine; from gctr_cli import batch, cli; "
+DRIVER = ("import functools, sys; from data_scripts import fake_engine; from gctr_cli import batch, cli; "
           "batch.run_batch = functools.partial(batch.run_batch, register_fn=fake_engine.slow_register); "
           "sys.argv[0] = 'gctr'; cli.main()")
 
 
 @pytest.fixture(scope="module")
 def env():
-    e = dict(os.environ)
-    tests = Path(__file__).resolve().parent
-    e["PYTHONPATH"] = os.pathsep.join([str(tests), str(tests.parent)] + ([e["PYTHONPATH"]] if e.get("PYTHONPATH") else []))
-    e.pop("COLUMNS", None)
-    return e
+    return make_subprocess_env()
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +61,7 @@ def cluster(data, env):
 
 
 def stable_rows(outdir: Path) -> dict[str, dict[str, str]]:
-    header, rows = read_csv(outdir / "transforms.csv")
+    _header, rows = read_csv(outdir / "transforms.csv")
     ids = [r["pair_id"] for r in rows]
     assert len(ids) == len(set(ids)), "a pair has two rows"
     return {r["pair_id"]: {k: v for k, v in r.items() if k != "runtime_s"} for r in rows}

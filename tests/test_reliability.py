@@ -26,14 +26,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import PYTHON, REPO, read_csv, rotation, row_matrix, translation, write_manifest_rows
 
-from conftest import PYTHON, REPO, apply, read_csv, rotation, row_matrix, similarity, write_manifest_rows
 from gctr_cli import io as gio
-from gctr_cli.io import text as _text_module  # noqa: F401 - gio.text for monkeypatching
 from gctr_cli.batch import ERRORS_COLUMNS, LOCK_NAME, MATRIX_COLUMNS, TRANSFORMS_COLUMNS, derive_seed
 from gctr_cli.config import Config
+from gctr_cli.geometry import apply, split, to_matrix
 from gctr_cli.io import PointCloudError, load_point_cloud, read_matrix, save_point_cloud, write_matrix
-from gctr_cli.metrics import decompose_similarity, rotation_angle_deg
+from gctr_cli.io import text as _text_module  # noqa: F401 - gio.text for monkeypatching
+from gctr_cli.metrics import rotation_angle_deg
 
 BUNNY = REPO / "data" / "models" / "bunny.ply"
 N_GOOD = 4000  #: points per good cloud: ~0.8 s per pair with the default config
@@ -58,12 +59,6 @@ def by_id(rows):
 def stable(row):
     """A transforms.csv row without its wall-clock column."""
     return {k: v for k, v in row.items() if k != "runtime_s"}
-
-
-def translate(offset) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = offset
-    return T
 
 
 def ply_bytes(points: np.ndarray, n_declared: int | None = None) -> bytes:
@@ -104,7 +99,7 @@ def _bunny_pair(rng, base, diag, scale, angle, n=N_GOOD):
     """Two different samplings of the bunny with noise; the target moved by a known similarity."""
     src = base[rng.choice(len(base), n, replace=False)] + rng.normal(scale=0.002 * diag, size=(n, 3))
     tgt_model = base[rng.choice(len(base), n, replace=False)]
-    T = similarity(scale, rotation(rng.normal(size=3), angle), rng.uniform(-1, 1, 3) * diag)
+    T = to_matrix(scale, rotation(rng.normal(size=3), angle), rng.uniform(-1, 1, 3) * diag)
     tgt = apply(T, tgt_model) + rng.normal(scale=0.002 * diag * scale, size=(n, 3))
     return src, tgt, T
 
@@ -165,7 +160,7 @@ def build_mixed(root: Path) -> Mixed:
     save_point_cloud(bad / "two.pcd", src1[:2])
     add_bad("two_points", bad / "two.pcd", ("too few points", "only 2 finite points"), as_target=True)
 
-    s2, t2 = add_good("good_xyz_ply", src2, tgt2, T2, (".xyz", ".ply"))
+    _s2, t2 = add_good("good_xyz_ply", src2, tgt2, T2, (".xyz", ".ply"))
     nan_src = good / "nan_few_src.xyz"
     save_point_cloud(nan_src, src2_nan)
     add("nan_few", nan_src, t2, root / "gt" / "good_xyz_ply.txt")
@@ -191,7 +186,7 @@ def build_mixed(root: Path) -> Mixed:
     src3, tgt3, T3 = _bunny_pair(rng, base, diag, 2.2, 75.0)
     add_good("centred", src3, tgt3, T3, (".ply", ".ply"))
     m.utm_files = add_good("utm", src3 + UTM_SOURCE, tgt3 + UTM_TARGET,
-                           translate(UTM_TARGET) @ T3 @ translate(-UTM_SOURCE), (".ply", ".pcd"))
+                           translation(UTM_TARGET) @ T3 @ translation(-UTM_SOURCE), (".ply", ".pcd"))
 
     save_point_cloud(bad / "broken_header.pcd", src1[:100], binary=False)
     text = (bad / "broken_header.pcd").read_text().replace("SIZE 8 8 8", "SIZE 8 8")
@@ -212,7 +207,7 @@ def build_mixed(root: Path) -> Mixed:
     # a scanned flat wall: planar up to a noise of 1e-4 of its size (must fail as planar)
     R4 = rotation([1.0, 2.0, 3.0], 40.0)
     wall = [np.c_[rng.uniform(-0.1, 0.1, size=(N_GOOD, 2)), rng.normal(scale=2e-5, size=N_GOOD)] for _ in range(2)]
-    T4 = similarity(1.5, R4, [0.1, 0.2, 0.3])
+    T4 = to_matrix(1.5, R4, [0.1, 0.2, 0.3])
     save_point_cloud(good / "wall_src.ply", wall[0])
     save_point_cloud(good / "wall_tgt.ply", apply(T4, wall[1]))
     write_matrix(root / "gt" / "nearly_planar.txt", T4)
@@ -333,7 +328,7 @@ def test_planar_cloud_message_names_the_file(mixed):
 
 @pytest.mark.engine
 def test_nearly_planar_clouds_fail_instead_of_returning_a_wrong_transform(mixed):
-    m, out, _, _ = mixed
+    _m, out, _, _ = mixed
     r = by_id(read_csv(out / "transforms.csv")[1])["nearly_planar"]
     assert r["status"] == "failed" and "planar" in r["message"], (r["status"], r["message"], r["m00"])
 
@@ -352,9 +347,9 @@ def test_utm_offset_registers_as_accurately_as_the_centred_copy(mixed):
     # the matrix is reported at full precision in the files' own coordinates: the 1e6 translation
     # is there, and removing the offsets gives back (about) the centred pair's transform
     assert np.abs(T_u[:3, 3]).max() > 1e6
-    back = translate(-UTM_TARGET) @ T_u @ translate(UTM_SOURCE)
-    s_b, R_b, _ = decompose_similarity(back)
-    s_c, R_c, _ = decompose_similarity(T_c)
+    back = translation(-UTM_TARGET) @ T_u @ translation(UTM_SOURCE)
+    s_b, R_b, _ = split(back)
+    s_c, R_c, _ = split(T_c)
     assert rotation_angle_deg(R_b.T @ R_c) < 0.5
     assert abs(s_b / s_c - 1) < 0.005
     src = load_point_cloud(m.root / next(r["source"] for r in m.rows if r["pair_id"] == "centred"))
@@ -365,7 +360,7 @@ def test_utm_offset_registers_as_accurately_as_the_centred_copy(mixed):
     # with the same seed the offset pair gives the centred pair's transform up to rounding
     reg = gctr("register", *m.utm_files, "--seed", rows["centred"]["seed"], "-o", out.parent / "utm_seeded.txt")
     assert reg.returncode == 0, reg.stdout + reg.stderr
-    back = translate(-UTM_TARGET) @ read_matrix(out.parent / "utm_seeded.txt") @ translate(UTM_SOURCE)
+    back = translation(-UTM_TARGET) @ read_matrix(out.parent / "utm_seeded.txt") @ translation(UTM_SOURCE)
     np.testing.assert_allclose(back[:3, :3], T_c[:3, :3], rtol=0, atol=1e-6 * np.abs(T_c[:3, :3]).max())
     assert np.linalg.norm(apply(back, c[None]) - apply(T_c, c[None])) < 1e-6 * tgt_diag
 
@@ -516,7 +511,7 @@ def test_two_million_points_register_within_2_gb_per_worker(tmp_path):
     base = load_point_cloud(BUNNY)
     base = base - base.mean(axis=0)
     diag = float(np.linalg.norm(np.ptp(base, axis=0)))
-    T = similarity(1.7, rotation([0.3, -1.0, 0.4], 65.0), [0.2, -0.1, 0.05])
+    T = to_matrix(1.7, rotation([0.3, -1.0, 0.4], 65.0), [0.2, -0.1, 0.05])
     save_point_cloud(tmp_path / "target.ply", apply(T, base[rng.choice(len(base), 20_000, replace=False)]))
     write_matrix(tmp_path / "gt.txt", T)
 
@@ -528,7 +523,8 @@ def test_two_million_points_register_within_2_gb_per_worker(tmp_path):
     # 2 M lines of text with colour columns (a typical LiDAR export), built from a repeated block
     block = base[rng.choice(len(base), 10_000, replace=False)] + rng.normal(scale=0.001 * diag, size=(10_000, 3))
     colours = rng.integers(0, 256, size=(10_000, 3))
-    text = "".join(f"{x:.6f} {y:.6f} {z:.6f} {r} {g} {b}\n" for (x, y, z), (r, g, b) in zip(block.tolist(), colours.tolist()))
+    text = "".join(f"{x:.6f} {y:.6f} {z:.6f} {r} {g} {b}\n"
+                   for (x, y, z), (r, g, b) in zip(block.tolist(), colours.tolist()))
     (tmp_path / "big.xyz").write_bytes(text.encode() * (n // 10_000))
 
     rows = [{"pair_id": "big_ply", "source": "big.ply", "target": "target.ply", "gt": "gt.txt"},

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-
-import fake_engine
 from conftest import read_csv
+
+from data_scripts import fake_engine
 from gctr_cli import batch, cli
 from gctr_cli.batch import run_batch
 from gctr_cli.report import COLUMNS, render_report
@@ -190,6 +190,7 @@ def chromium(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=90, cwd=tmp_path)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it: make browser-deps)")
 def test_report_renders_and_sorts_in_headless_chromium(failing_set, fast_config, tmp_path):
     pytest.importorskip("PIL.Image")

@@ -5,8 +5,9 @@ from __future__ import annotations
 import csv
 
 import pytest
+from conftest import read_csv
 
-import fake_engine
+from data_scripts import fake_engine
 from gctr_cli.batch import run_batch
 from gctr_cli.config import Config, config_to_yaml
 from gctr_cli.outcome import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
@@ -28,7 +29,7 @@ def write_folder(out, min_confidence=0.3):
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(TRANSFORMS_COLUMNS)
         for pid, status, conf, _ in ROWS:
-            m = ["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1"] if status == "ok" else [""] * 16
+            m = [str(int(i % 5 == 0)) for i in range(16)] if status == "ok" else [""] * 16  # the identity
             w.writerow([pid, "s.ply", "t.ply", status, "", "1.0" if status == "ok" else "", *m, "0.8", conf, "0.01",
                         "0.1", "1"])
     with open(out / "tm_errors.csv", "w", newline="") as fh:
@@ -43,8 +44,8 @@ def write_folder(out, min_confidence=0.3):
 
 def test_tradeoff_counts(tmp_path):
     write_folder(tmp_path / "out")
-    rows = list(csv.DictReader(open(tmp_path / "out" / "transforms.csv")))
-    errs = {r["pair_id"]: r for r in csv.DictReader(open(tmp_path / "out" / "tm_errors.csv"))}
+    rows = read_csv(tmp_path / "out" / "transforms.csv")[1]
+    errs = {r["pair_id"]: r for r in read_csv(tmp_path / "out" / "tm_errors.csv")[1]}
     ts, wrong, refused, n = confidence_tradeoff(rows, errs, 0.3, n_steps=8)
     assert n == 6 and ts[0] == 0.3 and ts[-1] == 1.0 and len(ts) == 8
     assert ts[2] == pytest.approx(0.5) and ts[4] == pytest.approx(0.7) and ts[6] == pytest.approx(0.9)
@@ -70,7 +71,7 @@ def test_no_tradeoff_plot_without_confidences(four_pairs, fast_config, tmp_path,
     # a method that reports no confidence (NaN): empty cells, no plot
     out = tmp_path / "out"
     run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register_without_confidence)
-    rows = list(csv.DictReader(open(out / "transforms.csv")))
+    rows = read_csv(out / "transforms.csv")[1]
     assert rows and all(r["confidence"] == "" for r in rows)
     page = render_report(out)
     assert 'id="tradeoff-plot"' not in page and 'data-key="confidence"' in page

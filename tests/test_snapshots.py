@@ -10,11 +10,12 @@ import textwrap
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import PYTHON, bumpy_surface, read_csv, rotation, write_cloud
 
-import fake_engine
-from conftest import PYTHON, apply, bumpy_surface, read_csv, rotation, similarity, write_cloud
+from data_scripts import fake_engine
 from gctr_cli import batch, cli, outcome, snapshots
 from gctr_cli.batch import run_batch, run_pair
+from gctr_cli.geometry import apply, to_matrix
 from gctr_cli.io import write_matrix
 from gctr_cli.snapshots import SNAPSHOT_SIZE_PX, render_snapshot
 
@@ -115,7 +116,7 @@ def test_a_snapshot_failure_never_fails_the_pair(four_pairs, fast_config, monkey
 
 def test_gctr_show(tmp_path):
     rng = np.random.default_rng(5)
-    T = similarity(1.5, rotation([1, 2, 3], 30.0), [1.0, 2.0, 3.0])
+    T = to_matrix(1.5, rotation([1, 2, 3], 30.0), [1.0, 2.0, 3.0])
     src = write_cloud(tmp_path / "a.pcd", bumpy_surface(rng, 3000))
     tgt = write_cloud(tmp_path / "b.xyz", apply(T, bumpy_surface(rng, 4000)))
     write_matrix(tmp_path / "T.txt", T)

@@ -78,7 +78,8 @@ def read_point_cloud(path: str | Path, *, min_points: int = 10, attributes: bool
     judged by its own name, not its target's). Raises :class:`PointCloudError` if the path does not
     name a readable regular file (missing, folder, device, broken link, link loop, empty), if the file
     is malformed or truncated, has fewer than ``min_points`` finite points, or if all points are
-    identical or collinear (unless ``degenerate_ok``). Non-finite points are dropped with a warning on the ``gctr_cli.io`` logger.
+    identical or collinear (unless ``degenerate_ok``). Non-finite points are dropped with a warning on
+    the ``gctr_cli.io`` logger.
     """
     path = Path(path)
     fmt = format_of(path)
@@ -96,7 +97,7 @@ def read_point_cloud(path: str | Path, *, min_points: int = 10, attributes: bool
         raise PointCloudError(f"{path}: too large to load into memory") from None
     except OSError as exc:
         raise PointCloudError(f"{path}: cannot read file ({exc.strerror or 'operating system error'})") from None
-    except Exception as exc:  # noqa: BLE001 - a reader bug must still name the file, in words
+    except Exception as exc:  # a reader bug must still name the file, in words
         logger.debug("%s: unexpected error in the %s reader", path, fmt.name, exc_info=exc)
         raise PointCloudError(f"{path}: malformed {fmt.name} file (its data does not match its header)") from None
     pts = np.ascontiguousarray(cloud.points, dtype=np.float64).reshape(-1, 3)

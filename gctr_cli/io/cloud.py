@@ -39,7 +39,7 @@ class PointCloud:
     def __len__(self) -> int:
         return len(self.points)
 
-    def subset(self, mask: np.ndarray) -> "PointCloud":
+    def subset(self, mask: np.ndarray) -> PointCloud:
         return PointCloud(self.points[mask], {k: v[mask] for k, v in self.attributes.items()},
                           self.source_format, self.meta)
 

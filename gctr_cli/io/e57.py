@@ -61,7 +61,8 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             )
         want_int = attributes and all("intensity" in f for f in headers)
         want_rgb = attributes and all(all(c in f for c in _COLOR) for f in headers)
-        parts, attrs = [], {"intensity": []} if want_int else {}
+        parts: list[np.ndarray] = []
+        attrs: dict[str, list[np.ndarray]] = {"intensity": []} if want_int else {}
         if want_rgb:
             attrs.update({v: [] for v in _COLOR.values()})
         for i in range(n_scans):

@@ -202,7 +202,7 @@ def _read_points(path: Path, fh, count: int, compressed: bool, attributes: bool)
         raise
     except MemoryError:
         raise PointCloudError(f"{path}: too large to load into memory ({count} points)") from None
-    except Exception as exc:  # noqa: BLE001 - laspy/lazrs errors carry library text; say it in words
+    except Exception as exc:  # laspy/lazrs errors carry library text; say it in words
         logger.debug("%s: laspy failed", path, exc_info=exc)
         what = "LAZ point data cannot be decompressed" if compressed else "LAS point data cannot be decoded"
         raise PointCloudError(f"{path}: corrupt or unsupported LAS/LAZ file: the {what}") from None

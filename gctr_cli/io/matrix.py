@@ -80,7 +80,7 @@ def format_matrix(T: np.ndarray) -> str:
     M = np.asarray(T, dtype=np.float64)
     if M.shape != (4, 4):
         raise MatrixError(f"matrix must be 4x4, got shape {M.shape}")
-    return "".join(" ".join("%.17g" % v for v in row) + "\n" for row in M)
+    return "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in M)
 
 
 def _check_matrix(T: np.ndarray, where: str) -> None:
@@ -89,5 +89,5 @@ def _check_matrix(T: np.ndarray, where: str) -> None:
         raise MatrixError(f"{where}: matrix contains non-finite values at {', '.join(bad)}")
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=1e-9):
         raise MatrixError(
-            f"{where}: last row must be '0 0 0 1' for a similarity transform, got {' '.join('%g' % v for v in T[3])}"
+            f"{where}: last row must be '0 0 0 1' for a similarity transform, got {' '.join(f'{v:g}' for v in T[3])}"
         )

@@ -60,7 +60,8 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             missing = [m for m in "xyz" if m not in hdr.fields]
             shown = " ".join(quote(f) for f in hdr.fields[:20]) or "none"
             raise PointCloudError(
-                f"{path}: PCD header has no {'/'.join(missing)} field{'s' if len(missing) > 1 else ''} (fields: {shown})"
+                f"{path}: PCD header has no {'/'.join(missing)} field{'s' if len(missing) > 1 else ''} "
+                f"(fields: {shown})"
             )
         if hdr.counts[hdr.fields.index(c)] != 1:
             raise PointCloudError(f"{path}: PCD field '{c}' has COUNT {hdr.counts[hdr.fields.index(c)]}, expected 1")
@@ -136,7 +137,7 @@ def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[i
             f"{path}: corrupt binary_compressed PCD: it declares {usize} uncompressed bytes from only "
             f"{csize} compressed bytes (LZF expands at most {LZF_MAX_RATIO}-fold)"
         )
-    raw = b""
+    raw: bytes | None = b""
     if n:
         comp = fh.read(csize)
         try:
@@ -145,8 +146,10 @@ def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[i
             raw = None
         if raw is None or len(raw) != usize:
             got = "more" if raw is not None and len(raw) > usize else ("fewer" if raw is not None else "invalid")
-            detail = "the LZF data is invalid" if got == "invalid" else f"the LZF data decompresses to {got} bytes than declared"
+            detail = ("the LZF data is invalid" if got == "invalid"
+                      else f"the LZF data decompresses to {got} bytes than declared")
             raise PointCloudError(f"{path}: corrupt binary_compressed PCD data: {detail}")
+    assert raw is not None  # checked above
     dtypes = hdr.dtypes()
     offs = np.cumsum([0] + [n * dt.itemsize * c for dt, c in zip(dtypes, hdr.counts)])
     return {hdr.fields[i]: np.frombuffer(raw, dtype=dtypes[i], count=n, offset=int(offs[i])) for i in keep}
@@ -172,7 +175,8 @@ def _parse_header(fh, path: Path) -> _Header:
         key = words[0].upper()
         if key not in _KEYS:
             if not vals:
-                raise PointCloudError(f"{path}: not a PCD file (header line {lineno} does not start with a PCD keyword)")
+                raise PointCloudError(
+                    f"{path}: not a PCD file (header line {lineno} does not start with a PCD keyword)")
             if parse_float(words[0].encode("latin-1")) is not None:
                 raise PointCloudError(f"{path}: broken PCD header: missing DATA line (numeric data on line {lineno})")
             raise PointCloudError(f"{path}: broken PCD header: unknown keyword {quote(words[0])} on line {lineno}")

@@ -21,7 +21,7 @@ from gctr_cli.io.cloud import PointCloud
 from gctr_cli.io.errors import PointCloudError, quote
 from gctr_cli.io.lines import LineReader, parse_float, read_rows
 
-__all__ = ["read_ply", "write_ply"]
+__all__ = ["ply_bytes", "read_ply"]
 
 MAX_HEADER_BYTES = 1 << 20
 MAX_HEADER_LINE = 1 << 16
@@ -142,7 +142,7 @@ def _parse_header(fh, path: Path) -> tuple[str, list[_Element], int]:
         if key in ("comment", "obj_info"):
             continue
 
-        def bad(what: str) -> PointCloudError:
+        def bad(what: str, lineno: int = lineno) -> PointCloudError:
             return PointCloudError(f"{path}: PLY header line {lineno}: {what}")
 
         if key == "format":
@@ -228,7 +228,8 @@ def _ascii_list_element(reader: LineReader, el: _Element, want: tuple[str, ...])
                 if p.name in out:
                     v = parse_float(toks[pos])
                     if v is None:
-                        raise PointCloudError(f"{path}: line {lineno}: non-numeric value {quote(toks[pos])} in {quote(el.name)}")
+                        raise PointCloudError(
+                            f"{path}: line {lineno}: non-numeric value {quote(toks[pos])} in {quote(el.name)}")
                     out[p.name][r] = v
                 pos += 1
                 continue
@@ -300,6 +301,7 @@ def _truncated(path: Path, el: _Element, row: int) -> PointCloudError:
 
 
 def _skip_list(path: Path, body: bytes, el: _Element, p: _Prop, offset: int, order: str, row: int) -> int:
+    assert p.count_dtype is not None, "a list property"
     csize = np.dtype(p.count_dtype).itemsize
     if offset + csize > len(body):
         raise _truncated(path, el, row)
@@ -331,7 +333,8 @@ def _skip_element(path: Path, body: bytes, el: _Element, offset: int, order: str
             pos = end
     row_size = pos - offset
     if offset + el.count * row_size <= len(body):
-        fields, k = [], 0
+        fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = []
+        k = 0
         for i, p in enumerate(el.props):
             if p.count_dtype is None:
                 fields.append((f"s{i}", order + p.dtype))
@@ -377,10 +380,9 @@ def ply_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
             continue
         code = v.dtype.str[1:]
         if code not in _TYPE_NAMES:
-            v = v.astype(np.float64) if v.dtype.kind in "fiub" else None
-            if v is None:
+            if v.dtype.kind not in "fiub":
                 continue
-            code = "f8"
+            v, code = v.astype(np.float64), "f8"
         cols.append(("_".join(str(name).split()) or "attr", v.astype("<" + code)))
     fmt = "binary_little_endian" if binary else "ascii"
     header = f"ply\nformat {fmt} 1.0\ncomment written by gctr\nelement vertex {n}\n"

@@ -19,6 +19,7 @@ import re
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -109,7 +110,7 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         raise PointCloudError(f"{path}: not a text point cloud (binary data found)")
     fh.seek(0)
     parts: list[np.ndarray] = []
-    state = {"header": True, "seen_count_line": False, "table": _PLAIN}
+    state: dict[str, Any] = {"header": True, "seen_count_line": False, "table": _PLAIN}
     lines_before = 0
     for k, block in enumerate(_blocks(fh, path)):
         if k == 0 and block.startswith(b"\xef\xbb\xbf"):  # UTF-8 byte order mark

@@ -1,4 +1,5 @@
-"""Deterministic stand-ins for ``gctr_cli.engine.register`` used by the batch robustness tests.
+"""Deterministic stand-ins for ``gctr_cli.engine.register``: the batch tests' engine and the batch-layer
+benchmark's (``data_scripts/bench_batch.py``, :func:`busy_register`).
 
 They are module-level functions so that spawned worker processes can import them by name.
 The test clouds are written so that ``target[i] = T_gt @ source[i]``: Umeyama on index
@@ -14,6 +15,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -86,6 +88,17 @@ def register(source, target, config=None, seed=0):
     )
 
 
+def busy_register(source, target, config=None, seed=0):
+    """Like :func:`register`, plus ``GCTR_BENCH_WORK_MS`` milliseconds of CPU (a busy loop): the scale
+    benchmark's engine, whose cost is the batch layer's own plus a known amount of work."""
+    t0 = time.perf_counter()
+    end = t0 + float(os.environ.get("GCTR_BENCH_WORK_MS", "0")) / 1000.0
+    x = 0
+    while time.perf_counter() < end:
+        x += 1
+    return replace(register(source, target, config, seed), runtime_s=time.perf_counter() - t0)
+
+
 def slow_register(source, target, config=None, seed=0):
     """Like :func:`register`, 0.4 s per pair (to kill a batch mid-run)."""
     time.sleep(0.4)
@@ -94,6 +107,4 @@ def slow_register(source, target, config=None, seed=0):
 
 def register_without_confidence(source, target, config=None, seed=0):
     """Like :func:`register`, for a method that computes no confidence (NaN)."""
-    from dataclasses import replace
-
     return replace(register(source, target, config, seed), confidence=float("nan"))
