@@ -62,7 +62,7 @@ import sys  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
 from dataclasses import asdict, dataclass  # noqa: E402
-from datetime import datetime, timezone  # noqa: E402
+from datetime import UTC, datetime  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -225,7 +225,7 @@ class LoadSampler:
             self.samples.append(load_average())
             self._stop.wait(self.interval)
 
-    def __enter__(self) -> "LoadSampler":
+    def __enter__(self) -> LoadSampler:
         self._thread.start()
         return self
 
@@ -1135,7 +1135,7 @@ def main(argv: list[str] | None = None) -> int:
         profile = stage_profile(data, settings.levels, settings.methods, settings.profile_pairs)
     meta = {
         "command": command,
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "settings": {**asdict(settings), "methods": list(settings.methods), "levels": list(settings.levels)},
         "machine": machine_info(),
         "load_samples": sampler.samples,

@@ -239,7 +239,7 @@ class BaselineKissConfig(_Strict):
     min_inliers: int = Field(3, ge=3, description="fewer final inliers (or an invalid solution): the method reports failure")
 
     @model_validator(mode="after")
-    def _metric_limits(self) -> "BaselineKissConfig":
+    def _metric_limits(self) -> BaselineKissConfig:
         voxel = self.voxel_ratio * self.metric_diagonal
         if voxel < 0.005:
             raise ValueError(f"voxel_ratio x metric_diagonal = {voxel:.4g} m is below KISS-Matcher's 5 mm limit")
@@ -292,7 +292,7 @@ class Config(_Strict):
     batch: BatchConfig = BatchConfig()
 
     @model_validator(mode="after")
-    def _refine_ratios(self) -> "Config":
+    def _refine_ratios(self) -> Config:
         r = self.engine.refine
         if r.end_ratio > r.start_ratio:
             raise ValueError("engine.refine.end_ratio must not exceed engine.refine.start_ratio")

@@ -14,7 +14,6 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from conftest import REPO, write_cloud
 
 #: never needed to register one pair with the GCTR engine (the default method)

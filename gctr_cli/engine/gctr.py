@@ -306,14 +306,14 @@ class _Fine:
     surface: Surface
 
     @classmethod
-    def build(cls, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> "_Fine":
+    def build(cls, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> _Fine:
         pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
         normals = estimate_normals(pts, cfg.preprocess.normal_neighbours)
         tree = cKDTree(pts)
         return cls(pts, normals, tree, Surface.build(pts, normals, tree, cfg.verdict.sample_points))
 
     @classmethod
-    def of(cls, prepared: _Prepared, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> "_Fine":
+    def of(cls, prepared: _Prepared, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> _Fine:
         """The refinement cloud of one input: the search's working cloud itself when
         ``refine.voxel_ratio`` is 0, else a finer downsampling of ``points``."""
         if cfg.refine.voxel_ratio == 0:

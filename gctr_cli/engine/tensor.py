@@ -15,7 +15,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
-
 @dataclass(frozen=True)
 class SparseTensor3:
     """Third-order tensor entries over the flattened (n1 * n2) assignment vector."""

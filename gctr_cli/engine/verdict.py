@@ -36,7 +36,7 @@ class Surface:
     sample_normals: np.ndarray
 
     @classmethod
-    def build(cls, points: np.ndarray, normals: np.ndarray, tree: cKDTree, n_sample: int) -> "Surface":
+    def build(cls, points: np.ndarray, normals: np.ndarray, tree: cKDTree, n_sample: int) -> Surface:
         step = max(1, len(points) // n_sample)
         return cls(points, normals, tree, points[::step], normals[::step])
 
