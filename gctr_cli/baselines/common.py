@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 from gctr_cli.config import BaselineConfig
 from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, validate_cloud
 from gctr_cli.engine.result import RegistrationResult
-from gctr_cli.engine.similarity import apply
+from gctr_cli.geometry import apply
 
 #: fewer points than this after downsampling: the method cannot run (failed status)
 MIN_WORKING_POINTS = 10

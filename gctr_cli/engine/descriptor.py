@@ -1,4 +1,4 @@
-"""Stage 3a: the triplet descriptor — cosines of the three inner angles (scale invariant).
+"""Stage 3: the triplet descriptor — cosines of the three inner angles (scale invariant).
 
 The descriptor of a triangle (a, b, c) is ``(cos A, cos B, cos C)`` in vertex order. As an
 extension (``tensor.normal_weight > 0``) it is followed by ``w * |n_v . n_tri|`` for each vertex v:

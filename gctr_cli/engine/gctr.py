@@ -53,11 +53,12 @@ from gctr_cli.engine.preprocess import (
 from gctr_cli.engine.ransac import Hypotheses, OccupancyGrid, ransac_hypotheses, refit, sample_from_assignment
 from gctr_cli.engine.refine import evaluate_fit, scaled_point_to_plane_icp, trimmed_scaled_icp
 from gctr_cli.engine.result import RegistrationResult
-from gctr_cli.engine.similarity import apply, best_similarity, to_matrix
+from gctr_cli.engine.similarity import best_similarity
 from gctr_cli.engine.supervoxel import supervoxels
 from gctr_cli.engine.tensor import SparseTensor3, build_first_order, build_third_order, entry_scores
 from gctr_cli.engine.triplets import sample_triangles
 from gctr_cli.engine.verdict import Agreement, Surface, Verdict, confidence, displacement, surface_agreement
+from gctr_cli.geometry import apply, split, to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ class _Timer:
 
 @dataclass(frozen=True)
 class _Prepared:
-    """One cloud after stage 0/1, in normalised coordinates."""
+    """One cloud after stages 1-2, in normalised coordinates."""
 
     points: np.ndarray  # downsampled working cloud
     normals: np.ndarray  # unit normals of ``points``
@@ -174,7 +175,7 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
     X: np.ndarray | None = None
     n_inliers, it = 0, 0
     seen: list[tuple[np.ndarray, Agreement]] = []
-    for it in range(1, cfg.outer.max_iterations + 1):
+    for it in range(1, cfg.outer.max_iterations + 1):  # noqa: B007 (the count is reported)
         t = time.perf_counter()
         H1 = build_first_order(apply(T, S), Q, cfg.tensor.first_order_sigma) if T is not None else None
         t = timer.add("tensor", t)
@@ -189,7 +190,8 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
         top = top[np.argsort(-scores[top], kind="stable")]
         guided_src = np.stack([H3.a[top] // n2, H3.b[top] // n2, H3.c[top] // n2], axis=1)
         guided_tgt = np.stack([H3.a[top] % n2, H3.b[top] % n2, H3.c[top] % n2], axis=1)
-        n_random = cfg.ransac.random_samples if T is None else int(cfg.ransac.random_samples * cfg.ransac.refine_fraction)
+        n_random = (cfg.ransac.random_samples if T is None
+                    else int(cfg.ransac.random_samples * cfg.ransac.refine_fraction))
         rand_src, rand_tgt = sample_from_assignment(X, n_random, cfg.ransac.candidates, rng)
         hyp = ransac_hypotheses(S, Q, np.vstack([guided_src, rand_src]), np.vstack([guided_tgt, rand_tgt]),
                                 threshold, bounds_n, min_spread=0.05, keep=cfg.ransac.verify_top)
@@ -211,7 +213,7 @@ def _outer_loop(src: _Prepared, tgt: _Prepared, H3: SparseTensor3, overlap: floa
         T_new = to_matrix(s, R, tr)
         timer.add("similarity", t)
         # Converged when the salient points stop moving (RMS displacement, normalised units).
-        converged = T is not None and float(np.sqrt(np.mean(np.sum((apply(T_new, S) - apply(T, S)) ** 2, axis=1)))) < cfg.outer.tol
+        converged = T is not None and displacement(T_new, T, S) < cfg.outer.tol
         T, n_inliers = T_new, rr.n_inliers
         if converged:
             break
@@ -421,8 +423,8 @@ def _refusal(verdict: Verdict, cfg: EngineConfig) -> str:
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
             transform: np.ndarray | None = None) -> RegistrationResult:
     T = np.eye(4) if transform is None else transform
-    s = float(abs(np.linalg.det(T[:3, :3])) ** (1 / 3)) or 1.0
-    return RegistrationResult(transform=T, scale=s, rotation=T[:3, :3] / s, translation=T[:3, 3].copy(),
+    s, R, t = split(T)
+    return RegistrationResult(transform=T, scale=s, rotation=R, translation=t,
                               fitness=0.0, inlier_rmse=float("nan"), n_inliers=0, iterations=0, status="failed",
                               message=message, runtime_s=time.perf_counter() - start, seed=seed, confidence=0.0,
                               timings=timings)
@@ -500,8 +502,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     timer.timings["verdict"] = timer.timings.get("verdict", 0.0) + (time.perf_counter() - t) - (
         timer.timings.get("refine", 0.0) - refine_before)
     T = denormalise(T_n, ns, nt)
-    scale = float(np.linalg.det(T[:3, :3]) ** (1.0 / 3.0))
-    rotation = T[:3, :3] / scale
+    scale, rotation, translation = split(T)
     status, message = "ok", ""
     if best.n_inliers < cfg.ransac.min_inliers:
         status, message = "failed", (f"too weak evidence: {best.n_inliers} RANSAC inliers "
@@ -513,7 +514,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     elif verdict.confidence < cfg.min_confidence:
         status, message = "failed", _refusal(verdict, cfg)
     return RegistrationResult(
-        transform=T, scale=scale, rotation=rotation, translation=T[:3, 3].copy(), fitness=fit.fitness,
+        transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
         message=message, runtime_s=time.perf_counter() - start, seed=seed, overlap=best.overlap,
         confidence=verdict.confidence, timings=timer.timings,

@@ -1,4 +1,4 @@
-"""Stage 5: tensor power iteration (Algorithm 1, lines 5-10) to a soft assignment matrix.
+"""Stage 4: tensor power iteration (Algorithm 1, lines 5-10) to a soft assignment matrix.
 
 One step: ``x <- H3 (x) x (x) x + w * H1`` where the third-order product is computed for the
 supersymmetric tensor with three ``np.bincount`` calls; each term is L2-normalised before they are
@@ -51,7 +51,7 @@ def power_iteration(tensor: SparseTensor3, first_order: SparseVector | None = No
         h1 *= first_order_weight / np.linalg.norm(h1)
     slots = np.concatenate([tensor.a, tensor.b, tensor.c])
     it = 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 (the count is returned)
         h3 = tensor_product(tensor, x, slots) if len(tensor.values) else np.zeros(n)
         norm3 = np.linalg.norm(h3)
         x_new = (h3 / norm3 if norm3 > 0 else h3) + h1

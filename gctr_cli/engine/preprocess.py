@@ -1,4 +1,4 @@
-"""Stage 0: validate, centre and normalise a cloud, downsample it early, estimate normals.
+"""Stage 1: validate, centre and normalise a cloud, downsample it early, estimate normals.
 
 Everything later works in *normalised* coordinates where each cloud has its robust centre at the
 origin and a robust diameter of 1, so that every relative length in the config means the same

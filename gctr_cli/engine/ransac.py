@@ -1,4 +1,4 @@
-"""Stage 6a: RANSAC with a similarity model, guided by the tensor's soft assignment.
+"""Stage 4: RANSAC with a similarity model, guided by the tensor's soft assignment.
 
 Minimal samples are triples of correspondences. They come from the power iteration's result in
 two ways: the tensor entries (triangle matches) with the highest support ``x_a x_b x_c h_abc``,
@@ -54,7 +54,8 @@ class OccupancyGrid:
     def __init__(self, points: np.ndarray, radius: float):
         self.cell = radius / 3.0
         self.origin = points.min(axis=0) - radius - 2 * self.cell
-        self.dims = np.ceil((points.max(axis=0) + radius + 2 * self.cell - self.origin) / self.cell).astype(np.int64) + 1
+        extent = points.max(axis=0) + radius + 2 * self.cell - self.origin
+        self.dims = np.ceil(extent / self.cell).astype(np.int64) + 1
         self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
         r = 3
         off = np.stack(np.meshgrid(*[np.arange(-r, r + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)

@@ -1,8 +1,9 @@
-"""Stage 8: optional dense refinement — trimmed scaled ICP on the downsampled clouds.
+"""Stage 5 (inside the verdict): scaled ICP that polishes each finalist on the working clouds.
 
-Plain scaled ICP drifts the scale on partially overlapping clouds with outliers, so pairs are
-trimmed by a distance threshold that shrinks geometrically from ``start`` to ``end`` and the
-caller keeps the refined transform only when the robust fitness improves.
+Point-to-plane by default (trimmed point-to-point optionally). Plain scaled ICP drifts the scale on
+partially overlapping clouds with outliers, so matches are trimmed by a distance threshold that
+shrinks geometrically from ``start`` to ``end`` and matches with incompatible normals are dropped;
+the caller (``gctr._refine``) keeps the result only if the tight surface agreement does not drop.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gctr_cli.engine.similarity import apply, to_matrix, umeyama
+from gctr_cli.engine.similarity import umeyama
+from gctr_cli.geometry import apply, to_matrix
 
 
 @dataclass(frozen=True)
@@ -39,7 +41,7 @@ def trimmed_scaled_icp(src: np.ndarray, tgt: np.ndarray, T0: np.ndarray, iterati
     T = T0.copy()
     taus = np.geomspace(start, end, max(iterations, 1))
     it = 0
-    for it, tau in enumerate(taus, start=1):
+    for it, tau in enumerate(taus, start=1):  # noqa: B007 (the count is returned)
         d, j = tree.query(apply(T, src), distance_upper_bound=tau)
         keep = np.isfinite(d)
         if keep.sum() < 10:
@@ -85,7 +87,7 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
     T = T0.copy()
     taus = np.geomspace(start, end, max(iterations, 1))
     it = 0
-    for it, tau in enumerate(taus, start=1):
+    for it, tau in enumerate(taus, start=1):  # noqa: B007 (the count is returned)
         p = apply(T, src)
         d, j = tree.query(p, distance_upper_bound=tau)
         keep = np.isfinite(d)

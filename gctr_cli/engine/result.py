@@ -17,8 +17,9 @@ class RegistrationResult:
     ``fitness`` is the fraction of the (downsampled) source points that, after the transform, have a
     target point within the inlier distance (``inlier_distance_ratio`` x the target's robust
     diameter, 3% by default; robust diameter = twice the 90th percentile of the distances to the
-    median point); ``inlier_rmse`` is the RMS of those distances, in target units. ``status`` is ``"ok"`` or ``"failed"``; a failed result
-    still carries the best transform found (or the identity) and a ``message`` saying why.
+    median point); ``inlier_rmse`` is the RMS of those distances, in target units. ``status`` is
+    ``"ok"`` or ``"failed"``; a failed result still carries the best transform found (or the
+    identity) and a ``message`` saying why.
 
     ``confidence`` in [0, 1] says how strongly the data single out this transform (see the
     engine's verdict stage); NaN where a method does not compute one.
@@ -48,7 +49,8 @@ class RegistrationResult:
     def __repr__(self) -> str:
         return (
             f"RegistrationResult(status={self.status!r}, scale={self.scale:.6g}, "
-            f"fitness={self.fitness:.3f}, confidence={self.confidence:.3f}, inlier_rmse={self.inlier_rmse:.4g}, n_inliers={self.n_inliers}, "
+            f"fitness={self.fitness:.3f}, confidence={self.confidence:.3f}, inlier_rmse={self.inlier_rmse:.4g}, "
+            f"n_inliers={self.n_inliers}, "
             f"iterations={self.iterations}, overlap={self.overlap}, runtime_s={self.runtime_s:.3f}, "
             f"message={self.message!r})"
         )

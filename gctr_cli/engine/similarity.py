@@ -1,4 +1,4 @@
-"""Stage 6b: closed-form similarity from correspondences.
+"""Stage 4: closed-form similarity from correspondences.
 
 Rotation from the SVD of the cross-covariance (with the reflection fix), scale either by
 Umeyama's closed form or by the paper's mean ratio of corresponding edge lengths, translation
@@ -52,18 +52,6 @@ def similarity_with_scale(A: np.ndarray, B: np.ndarray, scale: float,
                           R: np.ndarray) -> np.ndarray:
     """Translation for a fixed scale and rotation: ``t = mu_B - s R mu_A``."""
     return B.mean(axis=0) - scale * R @ A.mean(axis=0)
-
-
-def to_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = s * R
-    T[:3, 3] = t
-    return T
-
-
-def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 transform to (N, 3) points."""
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 def best_similarity(A: np.ndarray, B: np.ndarray, method: str = "auto",

@@ -1,4 +1,4 @@
-"""Stage 1: salient structures — supervoxel centroids in the spirit of VCCS (Papon et al. 2013).
+"""Stage 2: salient structures — supervoxel centroids in the spirit of VCCS (Papon et al. 2013).
 
 VCCS grows supervoxels from seeds over the voxel adjacency graph with a distance mixing spatial
 and normal terms. Here that growth is a multi-source shortest-path (geodesic Voronoi) over the

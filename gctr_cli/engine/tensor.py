@@ -1,4 +1,4 @@
-"""Stage 3b/4: the sparse third-order tensor (triangle-to-triangle similarity) and the
+"""Stages 3-4: the sparse third-order tensor (triangle-to-triangle similarity) and the
 first-order term (point-to-point similarity under the current transform).
 
 Both live over the flattened assignment vector ``x[i * n2 + i']`` (source point i matched to

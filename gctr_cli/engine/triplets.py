@@ -1,4 +1,4 @@
-"""Stage 2: random wide-baseline triplets (triangles) on the salient points.
+"""Stage 3: random wide-baseline triplets (triangles) on the salient points.
 
 A triangle qualifies when all three edges are at least ``min_edge`` long (the paper: 50% of the
 diameter of the overlapping region) and no inner angle is below ``min_angle_deg`` (near-degenerate

@@ -1,4 +1,4 @@
-"""Stage 7: the verdict — how well a transform explains both clouds, and how sure the engine is.
+"""Stage 5: the verdict — how well a transform explains both clouds, and how sure the engine is.
 
 Two measures, both on the working clouds in normalised coordinates:
 
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gctr_cli.engine.similarity import apply
+from gctr_cli.geometry import apply
 
 
 @dataclass(frozen=True)
