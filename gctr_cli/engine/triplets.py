@@ -53,13 +53,17 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
         # canonical vertex order (ascending cosine: largest angle first), from the cosines at hand
         found.append(np.take_along_axis(tri, np.argsort(cos[ok], axis=1, kind="stable"), axis=1))
         have += len(tri)
-        if have >= 2 * n:
-            break
+        if have >= n and len(_first_unique(np.concatenate(found), m)) >= n:
+            break  # the first n distinct draws are final: more rounds would not change them
     tri = np.concatenate(found) if found else np.empty((0, 3), dtype=np.int64)
     if len(tri) == 0:
         return tri
-    # Deduplicate on the unordered vertex set, keep the first draw (seeded, deterministic).
+    return tri[_first_unique(tri, m)][:n].astype(np.int64)
+
+
+def _first_unique(tri: np.ndarray, m: int) -> np.ndarray:
+    """Indices, in draw order, of the first draw of each distinct vertex set (seeded, deterministic)."""
     srt = np.sort(tri, axis=1).astype(np.int64)
     key = (srt[:, 0] * m + srt[:, 1]) * m + srt[:, 2]
     _, first = np.unique(key, return_index=True)
-    return tri[np.sort(first)][:n].astype(np.int64)
+    return np.sort(first)
