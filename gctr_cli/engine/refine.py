@@ -3,7 +3,7 @@
 Point-to-plane by default (trimmed point-to-point optionally). Plain scaled ICP drifts the scale on
 partially overlapping clouds with outliers, so matches are trimmed by a distance threshold that
 shrinks geometrically from ``start`` to ``end`` and matches with incompatible normals are dropped;
-the caller (``gctr._refine``) keeps the result only if the tight surface agreement does not drop.
+the caller (``decide._refine``) keeps the result only if the tight surface agreement does not drop.
 """
 
 from __future__ import annotations

@@ -15,6 +15,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
+def encode(i: np.ndarray, j: np.ndarray, n2: int) -> np.ndarray:
+    """Flattened assignment index of "source point ``i`` matches target point ``j``": ``i * n2 + j``."""
+    return np.asarray(i, dtype=np.int64) * n2 + np.asarray(j, dtype=np.int64)
+
+
+def decode(index: np.ndarray, n2: int) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`encode`: (source point, target point) of flattened assignment indices."""
+    return index // n2, index % n2
+
+
 @dataclass(frozen=True)
 class SparseTensor3:
     """Third-order tensor entries over the flattened (n1 * n2) assignment vector."""
@@ -70,10 +80,8 @@ def build_third_order(n1: int, src_tri: np.ndarray, f_src: np.ndarray, n2: int, 
         ratio = tgt_size[t] / np.maximum(src_size[s], 1e-12)
         keep = (ratio >= lo) & (ratio <= hi)
         s, t, values = s[keep], t[keep], values[keep]
-    a = src_tri[s, 0] * n2 + tgt_tri[t, 0]
-    b = src_tri[s, 1] * n2 + tgt_tri[t, 1]
-    c = src_tri[s, 2] * n2 + tgt_tri[t, 2]
-    return SparseTensor3(a.astype(np.int64), b.astype(np.int64), c.astype(np.int64), values, n1, n2)
+    a, b, c = (encode(src_tri[s, v], tgt_tri[t, v], n2) for v in range(3))
+    return SparseTensor3(a, b, c, values, n1, n2)
 
 
 def subset(tensor: SparseTensor3, keep: np.ndarray) -> SparseTensor3:
@@ -96,4 +104,4 @@ def build_first_order(src_points_moved: np.ndarray, tgt_points: np.ndarray, sigm
     if len(pairs) == 0:
         return SparseVector(np.empty(0, dtype=np.int64), np.empty(0), n1, n2)
     i, j, d = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), pairs["v"]
-    return SparseVector(i * n2 + j, np.exp(-((d / sigma) ** 2)), n1, n2)
+    return SparseVector(encode(i, j, n2), np.exp(-((d / sigma) ** 2)), n1, n2)

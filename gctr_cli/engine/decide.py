@@ -1,0 +1,100 @@
+"""Stage 5: the verdict. The best few distinct transforms of the search are refined (scaled ICP)
+and compared at tight tolerances; the best is the answer and its lead over the best distinct rival
+is the confidence (:mod:`gctr_cli.engine.verdict` has the measures)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from gctr_cli.config import EngineConfig
+from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer
+from gctr_cli.engine.refine import scaled_point_to_plane_icp, trimmed_scaled_icp
+from gctr_cli.engine.search import Candidate
+from gctr_cli.engine.verdict import Agreement, Verdict, confidence, displacement, surface_agreement
+
+#: below this agreement a refused answer explains too little to call the data "ambiguous"
+AMBIGUITY_MIN_SCORE = 0.15
+
+
+def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
+                     cfg: EngineConfig) -> Agreement:
+    """Surface agreement at the verdict's tight tolerances, on the refinement clouds."""
+    v = cfg.verdict
+    return surface_agreement(T, src_ref.surface, tgt_ref.surface, v.tight_distance_ratio, v.tight_normal_angle_deg)
+
+
+def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
+            bounds_n: tuple[float, float], timer: StageTimer) -> tuple[np.ndarray, Agreement]:
+    """Scaled ICP polish of a coarse transform on the refinement clouds, kept only when its tight surface
+    agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
+    verdict's objective exposes it). Returns the transform and its tight agreement."""
+    r, v = cfg.refine, cfg.verdict
+    before = _tight_agreement(T_n, src_ref, tgt_ref, cfg)
+    if not r.enabled:
+        return T_n, before
+    t = time.perf_counter()
+    if r.method == "point_to_plane":
+        T_r, _ = scaled_point_to_plane_icp(src_ref.points, tgt_ref.points, tgt_ref.normals, T_n, r.iterations,
+                                           r.start_ratio, r.end_ratio, bounds_n, tgt_ref.tree,
+                                           src_normals=src_ref.normals, max_normal_angle_deg=v.max_normal_angle_deg)
+    else:
+        T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
+                                    bounds_n, tgt_ref.tree)
+    timer.add("refine", t)
+    after = _tight_agreement(T_r, src_ref, tgt_ref, cfg)
+    return (T_r, after) if after.score >= before.score else (T_n, before)
+
+
+def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
+           cfg: EngineConfig, bounds_n: tuple[float, float], timer: StageTimer) -> tuple[np.ndarray, Verdict]:
+    """Choose the answer among everything the search saw and judge it.
+
+    The search ranks transforms by their surface agreement at the inlier distance; the best few
+    *distinct* ones (each moves the source by more than ``verdict.distinct_ratio`` from the others)
+    are refined and compared at the verdict's tight tolerances, so that no transform wins by
+    precision alone. The best is the answer; the confidence weighs its tight agreement against the
+    best distinct rival's.
+    """
+    v = cfg.verdict
+    pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
+    pool.sort(key=lambda item: -item[1].score)
+    sample = src.surface.sample
+
+    def distinct(T1: np.ndarray, T2: np.ndarray) -> bool:
+        return displacement(T1, T2, sample) > v.distinct_ratio
+
+    finalists: list[np.ndarray] = []
+    for T, _ in pool:
+        if all(distinct(T, F) for F in finalists):
+            finalists.append(T)
+            if len(finalists) == v.refined_finalists:
+                break
+    refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer) for T in finalists),
+                     key=lambda x: -x[1].score)
+    T_answer, agreement = refined[0]
+    # Rivals: the other refined finalists, and (unrefined, so at a disadvantage) the best of the
+    # rest of the pool — finalists can converge onto the answer when refined.
+    others = [(T, a) for T, a in refined[1:]]
+    unrefined = [T for T, _ in pool if distinct(T, T_answer)][:v.rival_pool]
+    others += [(T, _tight_agreement(T, src_ref, tgt_ref, cfg)) for T in unrefined]
+    rival_score = max([a.score for T, a in others if distinct(T, T_answer)], default=0.0)
+    support = sum(not distinct(T_answer, c.transform) for c in candidates)
+    conf = confidence(agreement.score, rival_score, v.full_margin)
+    return T_answer, Verdict(confidence=conf, score=agreement.score, rival_score=rival_score, agreement=agreement,
+                             support=support / max(len(candidates), 1))
+
+
+def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
+    """Why an answer below the confidence threshold is refused, in words: *ambiguous* when a distinct
+    rival explains nearly as much of a well-explained pair (agreement ≥ ``AMBIGUITY_MIN_SCORE``), else *low confidence*
+    with how much of the data the best alignment explains."""
+    scores = f"agreement {verdict.score:.2f} vs {verdict.rival_score:.2f}"
+    lead = verdict.score - verdict.rival_score
+    if verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score and verdict.score >= AMBIGUITY_MIN_SCORE:
+        return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
+                f"confidence {verdict.confidence:.2f}, threshold {cfg.min_confidence:.2f})")
+    return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment puts "
+            f"{100 * verdict.score:.0f}% of the points on the other surface, only {100 * lead:.0f} points more "
+            f"than a distinct alternative ({scores})")

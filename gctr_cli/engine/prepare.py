@@ -1,0 +1,104 @@
+"""Stages 1-2 for one cloud: the working cloud (voxel-downsampled, normals), its salient points
+(supervoxel centroids) and what the later stages look up in it; and the cloud the verdict refines on.
+
+Everything is in normalised coordinates (:func:`gctr_cli.engine.preprocess.normalise`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gctr_cli.config import EngineConfig
+from gctr_cli.engine.preprocess import downsample_to, estimate_normals
+from gctr_cli.engine.ransac import OccupancyGrid
+from gctr_cli.engine.supervoxel import supervoxels
+from gctr_cli.engine.verdict import Surface
+
+
+@dataclass
+class StageTimer:
+    """Seconds spent per pipeline stage (``RegistrationResult.timings``)."""
+
+    timings: dict[str, float]
+
+    def add(self, stage: str, start: float) -> float:
+        now = time.perf_counter()
+        self.timings[stage] = self.timings.get(stage, 0.0) + now - start
+        return now
+
+
+@dataclass(frozen=True)
+class PreparedCloud:
+    """One cloud after stages 1-2, in normalised coordinates."""
+
+    points: np.ndarray  # downsampled working cloud
+    normals: np.ndarray  # unit normals of ``points``
+    tree: cKDTree  # over ``points``
+    salient: np.ndarray  # supervoxel centroids
+    salient_normals: np.ndarray
+    salient_tree: cKDTree
+    surface: Surface  # what the verdict moves and looks up
+    grids: dict = field(default_factory=dict, compare=False)
+
+    def grid(self, radius: float) -> OccupancyGrid:
+        """Occupancy grid of the working cloud at ``radius`` (built once, then cached)."""
+        if radius not in self.grids:
+            self.grids[radius] = OccupancyGrid(self.points, radius)
+        return self.grids[radius]
+
+
+def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator, timer: StageTimer) -> PreparedCloud:
+    """Working cloud, normals and salient points of one normalised cloud (stages 1-2)."""
+    t = time.perf_counter()
+    work = downsample_to(points, cfg.supervoxel.voxel_ratio, cfg.preprocess.max_points, rng)
+    normals = estimate_normals(work, cfg.preprocess.normal_neighbours)
+    t = timer.add("preprocess", t)
+    sv = supervoxels(work, normals, voxel=cfg.supervoxel.voxel_ratio, seed_spacing=cfg.supervoxel.seed_ratio,
+                     spatial_weight=cfg.supervoxel.spatial_weight, normal_weight=cfg.supervoxel.normal_weight,
+                     iterations=cfg.supervoxel.iterations, min_voxels=cfg.supervoxel.min_voxels)
+    # Voxels that no supervoxel reached are isolated — typically outliers. Dropping them from the
+    # working cloud keeps outliers out of the refinement and the fitness (with 30% uniform
+    # outliers they otherwise pull scaled ICP's scale inwards).
+    surface = sv.labels >= 0
+    if cfg.preprocess.drop_isolated and surface.sum() >= max(50, len(work) // 4):
+        work, normals = work[surface], normals[surface]
+    salient, salient_normals = sv.centroids, sv.normals
+    if len(salient) > cfg.supervoxel.max_salient:
+        keep = np.sort(np.argsort(-sv.sizes, kind="stable")[: cfg.supervoxel.max_salient])
+        salient, salient_normals = salient[keep], salient_normals[keep]
+    timer.add("supervoxels", t)
+    tree = cKDTree(work)
+    return PreparedCloud(points=work, normals=normals, tree=tree, salient=salient, salient_normals=salient_normals,
+                     salient_tree=cKDTree(salient),
+                     surface=Surface.build(work, normals, tree, cfg.verdict.sample_points))
+
+
+@dataclass(frozen=True)
+class RefinementCloud:
+    """A finer working cloud for the refinement and the final verdict (precision needs more points
+    than the search)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+    surface: Surface
+
+    @classmethod
+    def build(cls, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> RefinementCloud:
+        pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
+        normals = estimate_normals(pts, cfg.preprocess.normal_neighbours)
+        tree = cKDTree(pts)
+        return cls(pts, normals, tree, Surface.build(pts, normals, tree, cfg.verdict.sample_points))
+
+    @classmethod
+    def of(cls, prepared: PreparedCloud, points: np.ndarray, cfg: EngineConfig,
+           rng: np.random.Generator) -> RefinementCloud:
+        """The refinement cloud of one input: the search's working cloud itself when
+        ``refine.voxel_ratio`` is 0, else a finer downsampling of ``points``."""
+        if cfg.refine.voxel_ratio == 0:
+            return cls(prepared.points, prepared.normals, prepared.tree, prepared.surface)
+        return cls.build(points, cfg, rng)
