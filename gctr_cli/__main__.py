@@ -1,6 +1,6 @@
 """``python -m gctr_cli``: the same as the ``gctr`` command."""
 
-from gctr_cli.cli import main
+from gctr_cli.cli import run
 
 if __name__ == "__main__":
-    main(prog_name="gctr")
+    run()

@@ -33,6 +33,7 @@ from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
 from gctr_cli.config import Config, config_from_dict
 from gctr_cli.geometry import apply, to_matrix
 from gctr_cli.io import load_point_cloud, read_matrix, write_matrix
+from gctr_cli.metrics import transform_errors
 
 
 @pytest.fixture
@@ -493,3 +494,25 @@ def test_real_engine_batch_end_to_end(tmp_path, subprocess_env):
     e = {r["pair_id"]: r for r in erows}["p_pcd_xyz"]
     assert f"success: {e['success']}" in reg.stdout
     assert (tmp_path / "m.txt").read_bytes() == (tmp_path / "j2" / "matrices" / "p_pcd_xyz.txt").read_bytes()
+
+
+def test_register_and_apply_as_processes_write_everything_before_the_fast_exit(tmp_path, subprocess_env):
+    """``gctr register``/``apply`` end with ``os._exit`` (no interpreter teardown): outputs, stdout and
+    exit codes must be complete anyway."""
+    manifest, gts = _real_pairs(tmp_path / "data")
+    _, rows = read_csv(manifest)
+    row = rows[0]
+    src, tgt = tmp_path / "data" / row["source"], tmp_path / "data" / row["target"]
+    out = gctr("register", src, tgt, "-o", tmp_path / "m.txt", "--gt", tmp_path / "data" / row["gt"],
+               env=subprocess_env)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "status: ok" in out.stdout and out.stdout.rstrip().endswith("success: true")
+    T = read_matrix(tmp_path / "m.txt")
+    e = transform_errors(T, gts[row["pair_id"]], 1.0, load_point_cloud(src).mean(axis=0))
+    assert e.rot_err_deg < 2.0 and e.scale_err < 0.02
+    moved = gctr("apply", tmp_path / "m.txt", src, "-o", tmp_path / "moved.ply", env=subprocess_env)
+    assert moved.returncode == 0, moved.stderr
+    np.testing.assert_allclose(load_point_cloud(tmp_path / "moved.ply"), apply(T, load_point_cloud(src)),
+                               rtol=0, atol=1e-9 * float(np.abs(load_point_cloud(tgt)).max()))
+    missing = gctr("register", tmp_path / "nope.ply", tgt, env=subprocess_env)
+    assert missing.returncode == 2 and "nope.ply" in missing.stderr
