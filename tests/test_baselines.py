@@ -222,7 +222,7 @@ def test_the_registry_is_the_only_list_of_methods():
     for name in METHODS:
         fn = get_register_fn(name)
         assert fn.__name__ == REGISTRY[name].function and callable(fn)
-    with pytest.raises(ConfigError, match="Input should be 'gctr', .* or 'kiss_matcher'"):
+    with pytest.raises(ConfigError, match=r"Input should be 'gctr', .* or 'kiss_matcher'"):
         config_from_dict({"method": "go_icp"})
 
 
