@@ -48,7 +48,9 @@ from __future__ import annotations
 
 import os
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+from gctr_cli.fsutil import THREAD_ENV_VARS  # no numpy import: safe before the thread caps are set
+
+for _var in THREAD_ENV_VARS:
     os.environ.setdefault(_var, "1")  # the in-process stage profile runs like a batch worker
 
 import argparse  # noqa: E402
@@ -61,6 +63,7 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
 from dataclasses import asdict, dataclass  # noqa: E402
 from datetime import UTC, datetime  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -398,7 +401,8 @@ def describe_code(start: dict[str, str], end: dict[str, str]) -> str:
     def one(st: dict[str, str]) -> str:
         return f"commit {st['head']}" + (f" + uncommitted changes in gctr_cli/ ({st['dirty']})" if st["dirty"] else "")
 
-    text = f"{one(start)} at the start; fingerprint of the engine + baselines + config + metrics code {start['fingerprint']}"
+    text = (f"{one(start)} at the start; fingerprint of the engine + baselines + config + metrics code "
+            f"{start['fingerprint']}")
     if end["fingerprint"] != start["fingerprint"]:
         text += (f" — **changed during the run** (now {end['fingerprint']}, {one(end)}): later batches may have run "
                  "different code")
@@ -450,10 +454,11 @@ def load_rows(work: Path, data: Path, methods: tuple[str, ...], levels: tuple[st
                     "runtime_s": _float(t["runtime_s"]) if t else math.nan,
                     "fitness": _float(t["fitness"]) if t else math.nan,
                 }
-                ok = bool(t and t["status"] == "ok" and e)
+                ok_errors = e if t and t["status"] == "ok" and e else None  # the tm_errors row of an ok pair
+                ok = ok_errors is not None
                 for k in ("rot_err_deg", "trans_err", "trans_err_rel", "scale_err", "tm_err"):
-                    row[k] = _float(e[k]) if ok else math.inf
-                row["success"] = bool(ok and e["success"] == "true")
+                    row[k] = _float(ok_errors[k]) if ok_errors is not None else math.inf
+                row["success"] = ok_errors is not None and ok_errors["success"] == "true"
                 # issue 9: confidence column of transforms.csv (NaN when the batch has none or the method
                 # returns NaN) and the would-be success of the returned matrix whatever the status (None when
                 # the row has no usable matrix: failed rows of the batch runner have empty matrix cells)
@@ -590,7 +595,8 @@ def stage_profile(data: Path, levels, methods, n_per_level: int) -> dict[str, di
                 totals[m].append(res.runtime_s)
     out: dict[str, dict[str, float]] = {}
     for m in chosen:
-        stages = sorted({k for t in timings[m] for k in t}, key=lambda k: -np.median([t.get(k, 0.0) for t in timings[m]]))
+        stages = sorted({k for t in timings[m] for k in t},
+                        key=lambda k: -np.median([t.get(k, 0.0) for t in timings[m]]))
         out[m] = {k: float(np.median([t.get(k, 0.0) for t in timings[m]])) for k in stages}
         out[m]["(total)"] = float(np.median(totals[m]))
     return out
@@ -707,8 +713,10 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
     for lv in levels:
         L.append(f"- `{lv}`: {LEVEL_DESCRIPTIONS[lv]}")
     L.append("")
-    L.append(f"Success (fixed before the runs; `success:` of the default config): rotation < {succ['rotation_deg']:g}°, "
-             f"translation < {succ['translation_rel']:g} × target bounding-box diagonal, scale error < {succ['scale']:g}. "
+    L.append("Success (fixed before the runs; `success:` of the default config): "
+             f"rotation < {succ['rotation_deg']:g}°, "
+             f"translation < {succ['translation_rel']:g} × target bounding-box diagonal, "
+             f"scale error < {succ['scale']:g}. "
              "Every method ran through `gctr batch` with the default config and `method:` set "
              f"(`-j {s['workers']}`); rows are the batch runner's `transforms.csv` / `tm_errors.csv`.")
     L.append("")
@@ -840,7 +848,8 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
     if bad:
         L.append("## gctr's unsuccessful pairs")
         L.append("")
-        L.append("| pair | overlap src / tgt | true scale | rot. err (°) | transl. err (rel) | scale err | status / message |")
+        L.append("| pair | overlap src / tgt | true scale | rot. err (°) | transl. err (rel) | scale err "
+                 "| status / message |")
         L.append("|---|---:|---:|---:|---:|---:|---|")
         for r in bad:
             msg = r["status"] + (f": {r['message']}" if r["message"] else "")
@@ -886,10 +895,10 @@ def render_verdicts(rows, methods, levels, configured: float | None) -> list[str
     groups += [(m, "**all**", [r for r in rows if r["method"] == m]) for m in methods]
     L += outcome_table(groups, "runtime_s")
     L.append("")
+    silent = {m: sum(outcome(r) == "silent_wrong" for r in rows if r["method"] == m) for m in methods}
+    total = {m: sum(r["method"] == m for r in rows) for m in methods}
     L.append("Silent wrong over all levels: " + "; ".join(
-        f"{m} {sum(outcome(r) == 'silent_wrong' for r in rows if r['method'] == m)} of "
-        f"{sum(r['method'] == m for r in rows)} pairs "
-        f"({100.0 * sum(outcome(r) == 'silent_wrong' for r in rows if r['method'] == m) / max(1, sum(r['method'] == m for r in rows)):.1f}%)"
+        f"{m} {silent[m]} of {total[m]} pairs ({100.0 * silent[m] / max(1, total[m]):.1f}%)"
         for m in methods) + ".")
     L.append("")
     sweeps = {m: confidence_sweep([r for r in rows if r["method"] == m], CONFIDENCE_THRESHOLDS) for m in methods}
@@ -900,7 +909,8 @@ def render_verdicts(rows, methods, levels, configured: float | None) -> list[str
           "the comparison methods have none). Offline sweep: at threshold t a pair is accepted when it has a usable "
           "matrix and its confidence ≥ t. *Silent wrong*: accepted and wrong; *correct refused*: confidence < t "
           "although the matrix was a success; % of the method's pairs. "
-          + (f"Methods without a confidence (NaN), reported as never refusing: {', '.join(no_conf)}. " if no_conf else "")
+          + (f"Methods without a confidence (NaN), reported as never refusing: {', '.join(no_conf)}. "
+             if no_conf else "")
           + (f"{unknown} failed rows have no matrix in `transforms.csv` (the batch runner leaves it empty), so their "
              "would-be success is unknown and they count as refused at every threshold; `bench/ENGINE.md` has the "
              "sweep with every failed pair's transform." if unknown else ""), ""]
@@ -1028,7 +1038,7 @@ def write_rows_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 
 def write_report(meta: dict[str, Any], runs: list[BatchRun], work: Path, data: Path, out: Path,
-                 profile: dict[str, dict[str, float]], ablation_runs: list[BatchRun] = ()) -> dict[str, Any]:
+                 profile: dict[str, dict[str, float]], ablation_runs: Sequence[BatchRun] = ()) -> dict[str, Any]:
     """Rows -> stats -> goals -> ``out`` (markdown) + the two PNGs next to it. Returns the stats and goals."""
     s = meta["settings"]
     methods, levels = tuple(s["methods"]), tuple(s["levels"])

@@ -24,7 +24,8 @@ def load(path):  # -> normalised cloud, its centre and its diagonal
 def features(pcd):
     down = pcd.voxel_down_sample(VOXEL)
     down.estimate_normals(search(radius=2 * VOXEL, max_nn=30))
-    return down, reg.compute_fpfh_feature(down, search(radius=5 * VOXEL, max_nn=100))
+    # open3d's stubs omit the default of `indices` (empty = every point), which the binding has
+    return down, reg.compute_fpfh_feature(down, search(radius=5 * VOXEL, max_nn=100))  # type: ignore[call-arg]
 
 
 (src, cs, ss), (tgt, ct, st) = load(sys.argv[1]), load(sys.argv[2])

@@ -48,7 +48,7 @@ class _StderrHandler(logging.StreamHandler):
     def __init__(self) -> None:
         super().__init__(sys.stderr)
 
-    @property  # type: ignore[override]
+    @property
     def stream(self):  # noqa: D401
         return sys.stderr
 
@@ -197,9 +197,12 @@ def main(verbose: int) -> None:
 @main.command()
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: built-in defaults).")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Write the 4x4 matrix to this file.")
-@click.option("--gt", type=click.Path(dir_okay=False, path_type=Path), help="Ground-truth matrix: also print the errors.")
+@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
+              help="YAML config (default: built-in defaults).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the 4x4 matrix to this file.")
+@click.option("--gt", type=click.Path(dir_okay=False, path_type=Path),
+              help="Ground-truth matrix: also print the errors.")
 @click.option("--seed", type=click.IntRange(min=0), help="Engine seed (default: the config seed). To reproduce a "
               "batch row, pass its seed column.")
 @click.option("--aligned", type=click.Path(dir_okay=False, path_type=Path),
@@ -212,7 +215,8 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     Prints the 4x4 matrix (full precision, same format as the matrix files), the scale, fitness
     (fraction of source points with a target point within the inlier distance), the engine's
     confidence (n/a for methods without one), inlier RMSE, status and runtime; with --gt also the
-    rotation/translation/scale/TM errors and success. BLAS/OpenMP run single-threaded as in batch workers (set OMP_NUM_THREADS etc. to override).
+    rotation/translation/scale/TM errors and success. BLAS/OpenMP run single-threaded as in batch
+    workers (set OMP_NUM_THREADS etc. to override).
 
     \b
     Exit codes:
@@ -256,14 +260,15 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         echo(f"tm_err: {e.tm_err:.6g}")
         echo(f"success: {'true' if outcome.success else 'false'}")
 
-    if not outcome.ok:
+    transform = outcome.transform
+    if not outcome.ok or transform is None:  # an ok outcome always carries its transform; never write None
         for path, what in ((output, "matrix"), (aligned, "aligned cloud")):
             if path is not None:
                 click.echo(f"gctr: no {what} written to {path} (registration failed)", err=True)
         sys.exit(EXIT_FAILED)
     if output is not None:
         try:
-            write_matrix(output, outcome.transform)
+            write_matrix(output, transform)
         except MatrixError as exc:
             _die(str(exc))
         logger.info("wrote %s", output)
@@ -271,7 +276,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         from gctr_cli.io import PointCloudError, write_aligned
 
         try:
-            write_aligned(source, outcome.transform, aligned)
+            write_aligned(source, transform, aligned)
         except (PointCloudError, MatrixError) as exc:
             _die(str(exc))
         echo(f"aligned: {aligned}")
@@ -368,11 +373,14 @@ def _print_summary(summary: Any, config: Any) -> None:
 
 @main.command(epilog=EXIT_CODES_HELP)
 @click.argument("manifest", type=click.Path(path_type=Path))
-@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: built-in defaults).")
+@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
+              help="YAML config (default: built-in defaults).")
 @click.option("-o", "--outdir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Output folder (created if needed).")
-@click.option("-j", "--workers", type=click.IntRange(min=0), help="Worker processes (default: config batch.workers; 0 = one per core).")
-@click.option("--resume", is_flag=True, help="Continue an interrupted run: skip pairs already in OUTDIR/transforms.csv.")
+@click.option("-j", "--workers", type=click.IntRange(min=0),
+              help="Worker processes (default: config batch.workers; 0 = one per core).")
+@click.option("--resume", is_flag=True,
+              help="Continue an interrupted run: skip pairs already in OUTDIR/transforms.csv.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 @click.option("--min-success", type=click.FloatRange(0.0, 1.0), metavar="RATE",
               help="Exit 3 if the success rate over pairs with ground truth is below RATE (0..1).")
@@ -483,7 +491,8 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
 @click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-m", "--matrix", type=click.Path(dir_okay=False, path_type=Path),
               help="4x4 source->target matrix (e.g. OUTDIR/matrices/<pair_id>.txt): also show the clouds registered.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="PNG file to write.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="PNG file to write.")
 @click.option("--max-points", type=click.IntRange(min=10), default=3000, show_default=True,
               help="Points drawn per cloud (evenly subsampled).")
 @click.option("--title", help="Title of the picture (default: the two file names).")
@@ -535,7 +544,8 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
 @click.argument("source_dir", type=click.Path(path_type=Path))
 @click.argument("target_dir", type=click.Path(path_type=Path))
 @click.option("--gt-dir", type=click.Path(path_type=Path), help="Folder of ground-truth matrices named <stem>.txt.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Manifest CSV to write.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Manifest CSV to write.")
 def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Path) -> None:
     """Build a pair manifest by matching file stems of SOURCE_DIR and TARGET_DIR.
 

@@ -33,7 +33,8 @@ class PreprocessConfig(_Strict):
 
     max_points: int = Field(6000, ge=100, description="working size of each cloud (voxel downsampling)")
     normal_neighbours: int = Field(30, ge=5, le=100, description="k of the kNN used for PCA normals")
-    drop_isolated: bool = Field(True, description="drop voxels no supervoxel reaches (outliers) before refinement and scoring")
+    drop_isolated: bool = Field(
+        True, description="drop voxels no supervoxel reaches (outliers) before refinement and scoring")
 
 
 class SupervoxelConfig(_Strict):
@@ -54,7 +55,8 @@ class TripletConfig(_Strict):
     n_source: int = Field(1500, ge=10, description="source triangles per pair")
     n_target: int = Field(25000, ge=10, description="target triangles per pair")
     min_edge_ratio: float = Field(0.5, gt=0, le=1, description="edges >= ratio * overlap-region diameter (sqrt(r))")
-    max_edge_ratio: float = Field(1.0, gt=0, description="edges <= ratio * overlap-region diameter when the region is a part of the cloud")
+    max_edge_ratio: float = Field(
+        1.0, gt=0, description="edges <= ratio * overlap-region diameter when the region is a part of the cloud")
     min_angle_deg: float = Field(12.0, ge=0, lt=60, description="reject near-degenerate triangles")
 
 
@@ -62,11 +64,15 @@ class TensorConfig(_Strict):
     """Sparse third-order tensor from k nearest neighbours in descriptor space."""
 
     knn: int = Field(50, ge=1, le=1000, description="target triangles matched per source triangle")
-    knn_eps: float = Field(0.0, ge=0, description="approximate neighbour search: neighbours within (1 + eps) of the exact k-th distance; 0 = exact")
-    normal_weight: float = Field(1.0, ge=0, description="weight of the vertex-normal terms of the descriptor; 0 = angles only")
+    knn_eps: float = Field(
+        0.0, ge=0,
+        description="approximate neighbour search: neighbours within (1 + eps) of the exact k-th distance; 0 = exact")
+    normal_weight: float = Field(
+        1.0, ge=0, description="weight of the vertex-normal terms of the descriptor; 0 = angles only")
     sigma: float = Field(0.0, ge=0, description="descriptor bandwidth; 0 = mean kNN distance")
     first_order_weight: float = Field(1.0, ge=0, description="weight of the point-to-point term")
-    scale_filter: bool = Field(True, description="drop triangle matches whose perimeter ratio the overlap's scale prior rules out")
+    scale_filter: bool = Field(
+        True, description="drop triangle matches whose perimeter ratio the overlap's scale prior rules out")
     first_order_sigma: float = Field(0.05, gt=0, description="point-term bandwidth / robust diameter")
 
 
@@ -89,9 +95,11 @@ class RansacConfig(_Strict):
 class OuterLoopConfig(_Strict):
     max_iterations: int = Field(4, ge=1, le=50)
     tol: float = Field(0.002, gt=0, description="stop when salient points move less (RMS, / diameter)")
-    settle_support: int = Field(2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
+    settle_support: int = Field(
+        2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
     settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
-    settle_alone: float = Field(0.7, ge=0, le=1, description="stop after a single hypothesis whose surface agreement reaches this; 1 = never")
+    settle_alone: float = Field(
+        0.7, ge=0, le=1, description="stop after a single hypothesis whose surface agreement reaches this; 1 = never")
 
 
 class RefineConfig(_Strict):
@@ -103,7 +111,9 @@ class RefineConfig(_Strict):
     iterations: int = Field(15, ge=1, le=500)
     start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / robust diameter")
     end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")
-    voxel_ratio: float = Field(0.0, ge=0, lt=0.5, description="voxel size of the refinement clouds / robust diameter; 0 = refine on the working clouds")
+    voxel_ratio: float = Field(
+        0.0, ge=0, lt=0.5,
+        description="voxel size of the refinement clouds / robust diameter; 0 = refine on the working clouds")
     max_points: int = Field(12000, ge=100, description="working size of each refinement cloud")
 
 
@@ -114,12 +124,18 @@ class VerdictConfig(_Strict):
     finalists: int = Field(10, ge=1, description="hypotheses per round scored by surface agreement")
     max_normal_angle_deg: float = Field(30.0, gt=0, le=90, description="normals agree below this angle")
     distinct_ratio: float = Field(0.1, gt=0, description="a rival moves the source by more (RMS / robust diameter)")
-    refined_finalists: int = Field(3, ge=1, description="distinct transforms refined and compared at the tight tolerances")
+    refined_finalists: int = Field(
+        3, ge=1, description="distinct transforms refined and compared at the tight tolerances")
     rival_pool: int = Field(30, ge=0, description="best unrefined transforms of the search also checked as rivals")
-    tight_distance_ratio: float = Field(0.02, gt=0, lt=1, description="final comparison: distance / robust target diameter")
-    tight_normal_angle_deg: float = Field(20.0, gt=0, le=90, description="final comparison: normals agree below this angle")
-    full_margin: float = Field(0.25, gt=0, le=1, description="lead over the best distinct rival at which confidence reaches 1")
-    ambiguity_ratio: float = Field(0.8, gt=0, le=1, description="a refused answer is called ambiguous when its rival reaches this share of its agreement")
+    tight_distance_ratio: float = Field(
+        0.02, gt=0, lt=1, description="final comparison: distance / robust target diameter")
+    tight_normal_angle_deg: float = Field(
+        20.0, gt=0, le=90, description="final comparison: normals agree below this angle")
+    full_margin: float = Field(
+        0.25, gt=0, le=1, description="lead over the best distinct rival at which confidence reaches 1")
+    ambiguity_ratio: float = Field(
+        0.8, gt=0, le=1,
+        description="a refused answer is called ambiguous when its rival reaches this share of its agreement")
 
 
 class EngineConfig(_Strict):
@@ -136,12 +152,15 @@ class EngineConfig(_Strict):
     verdict: VerdictConfig = VerdictConfig()
     overlap: Literal["auto"] | float = Field("auto", description="'auto' searches 0.25/0.5/0.75/1.0")
     overlap_candidates: tuple[float, ...] = Field((0.25, 0.5, 0.75, 1.0), description="ratios tried by 'auto'")
-    part_regions: tuple[float, ...] = Field((0.6,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
+    part_regions: tuple[float, ...] = Field(
+        (0.6,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
-    min_confidence: float = Field(0.3, ge=0, le=1, description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
+    min_confidence: float = Field(
+        0.3, ge=0, le=1,
+        description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")
     @classmethod
@@ -208,7 +227,8 @@ class BaselineIcpConfig(_Strict):
     voxel_ratio: float = Field(0.01, ge=0, lt=0.5, description="voxel size / bbox diagonal; 0 = all points")
     iterations: int = Field(100, ge=1, le=10000, description="maximum ICP iterations")
     threshold_ratio: float = Field(0.05, gt=0, description="icp method: max correspondence distance / bbox diagonal")
-    refine_threshold_ratio: float = Field(0.02, gt=0, description="refinement after fpfh_ransac/fgr: same, / bbox diagonal")
+    refine_threshold_ratio: float = Field(
+        0.02, gt=0, description="refinement after fpfh_ransac/fgr: same, / bbox diagonal")
 
 
 class BaselineCpdConfig(_Strict):
@@ -228,15 +248,19 @@ class BaselineKissConfig(_Strict):
     Its voxel must be at least 5 mm (it throws below); its clamping of noise bounds above 1 m (a heuristic
     for large maps) is switched off, the bounds are voxel x gains."""
 
-    metric_diagonal: float = Field(20.0, gt=0, description="bbox diagonal the clouds are scaled to before the call (metres)")
+    metric_diagonal: float = Field(
+        20.0, gt=0, description="bbox diagonal the clouds are scaled to before the call (metres)")
     voxel_ratio: float = Field(0.02, gt=0, lt=0.5, description="voxel size / bbox diagonal (0.4 m at a 20 m diagonal)")
     normal_radius_factor: float = Field(3.0, gt=0, description="normal estimation radius / voxel size")
     feature_radius_factor: float = Field(5.0, gt=0, description="Faster-PFH radius / voxel size")
     robin_noise_bound_gain: float = Field(1.0, gt=0, description="ROBIN pruning noise bound / voxel size")
-    solver_noise_bound_gain: float = Field(0.75, gt=0, description="GNC solver noise bound / voxel size (<= the ROBIN gain)")
+    solver_noise_bound_gain: float = Field(
+        0.75, gt=0, description="GNC solver noise bound / voxel size (<= the ROBIN gain)")
     max_correspondences: int = Field(5000, ge=10, description="feature correspondences kept at most")
-    use_quatro: bool = Field(False, description="Quatro solver (4-DoF, gravity-aligned scenes) instead of the 6-DoF GNC")
-    min_inliers: int = Field(3, ge=3, description="fewer final inliers (or an invalid solution): the method reports failure")
+    use_quatro: bool = Field(
+        False, description="Quatro solver (4-DoF, gravity-aligned scenes) instead of the 6-DoF GNC")
+    min_inliers: int = Field(
+        3, ge=3, description="fewer final inliers (or an invalid solution): the method reports failure")
 
     @model_validator(mode="after")
     def _metric_limits(self) -> BaselineKissConfig:

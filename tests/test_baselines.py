@@ -82,6 +82,7 @@ def test_global_feature_methods_recover_an_arbitrary_similarity(bunny, method):
     _check(get_register_fn(method)(source, target, BaselineConfig(), seed=5), T_gt, source, target)
 
 
+@pytest.mark.slow  # ~7 s
 def test_cpd_recovers_a_similarity(bunny):
     # CPD is local too (wider basin than ICP): 50 degrees, scale 2.5
     T_gt = _similarity(2.5, 50.0, [0.2, -1.0, 0.5], [-0.1, 0.3, 0.05])
@@ -222,7 +223,7 @@ def test_the_registry_is_the_only_list_of_methods():
     for name in METHODS:
         fn = get_register_fn(name)
         assert fn.__name__ == REGISTRY[name].function and callable(fn)
-    with pytest.raises(ConfigError, match="Input should be 'gctr', .* or 'kiss_matcher'"):
+    with pytest.raises(ConfigError, match=r"Input should be 'gctr', .* or 'kiss_matcher'"):
         config_from_dict({"method": "go_icp"})
 
 
@@ -246,6 +247,7 @@ def test_config_show_documents_the_baselines_section():
 
 
 # ------------------------------------------------------------------------------------------ batch
+@pytest.mark.slow  # ~7-8 s
 def test_gctr_batch_with_method_fpfh_ransac(bunny, tmp_path):
     """The user-facing path: a manifest, a config with ``method: fpfh_ransac``, ``gctr batch``."""
     from gctr_cli.batch import ERRORS_COLUMNS, TRANSFORMS_COLUMNS, derive_seed

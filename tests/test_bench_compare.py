@@ -120,6 +120,7 @@ def test_report_from_a_hand_made_run(tmp_path):
     assert len(rows) == 8 and {r["method"] for r in rows} == {"gctr", "fgr"}
 
 
+@pytest.mark.slow  # ~15 s
 def test_tiny_end_to_end_run_and_report_only(tmp_path):
     """The real pipeline: generator -> gctr batch per method and level (measured) -> report."""
     work, out = tmp_path / "work", tmp_path / "out" / "RESULTS.md"

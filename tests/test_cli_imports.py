@@ -57,8 +57,8 @@ def pair(tmp_path_factory):
 
 
 def test_register_imports_only_what_it_uses(pair, tmp_path):
-    code, modules = _modules_after(["register", str(pair / "a.ply"), str(pair / "b.ply"), "-o", str(tmp_path / "m.txt")],
-                                   tmp_path)
+    code, modules = _modules_after(
+        ["register", str(pair / "a.ply"), str(pair / "b.ply"), "-o", str(tmp_path / "m.txt")], tmp_path)
     assert code in (0, 1)  # the registration's outcome does not matter here, the import set does
     assert "gctr_cli.engine" in modules and "gctr_cli.pair" in modules  # it did run the engine
     assert _loaded(modules, NOT_FOR_REGISTER) == []

@@ -91,7 +91,9 @@ def test_confidence_is_the_lead_over_the_rival():
 
 
 # ------------------------------------------------------------------------------------- part in whole
-@pytest.mark.parametrize("patch_is_source, seed", [(True, 0), (False, 1)], ids=["part_as_source", "part_as_target"])
+@pytest.mark.parametrize("patch_is_source, seed",
+                         [pytest.param(True, 0, id="part_as_source"),
+                          pytest.param(False, 1, id="part_as_target", marks=pytest.mark.slow)])  # ~7 s
 def test_part_inside_whole(patch_is_source, seed):
     """A 15-40% patch of the bunny against the whole bunny at 1/4 density, 0.5% noise, 10% outliers,
     random similarity — in both directions."""

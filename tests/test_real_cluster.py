@@ -88,6 +88,7 @@ def wait_rows(proc: subprocess.Popen, outdir: Path, n: int, timeout: float = 60.
         time.sleep(0.02)
 
 
+@pytest.mark.slow  # ~7.5 s, plus ~7 s to start the module's cluster
 def test_worker_sigkilled_mid_run_costs_nothing(data, cluster, env, tmp_path):
     manifest, config, _, local = data
     before = cluster.worker_pids()
@@ -110,6 +111,7 @@ def test_worker_sigkilled_mid_run_costs_nothing(data, cluster, env, tmp_path):
     assert f"pairs: {N_PAIRS} ({N_PAIRS} ok, 0 failed)" in stdout
 
 
+@pytest.mark.slow  # ~14 s
 def test_scheduler_killed_exit_2_then_resume_on_a_new_cluster(data, cluster, env, tmp_path):
     manifest, config, _, local = data
     out = tmp_path / "out"

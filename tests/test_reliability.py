@@ -433,6 +433,7 @@ def _children(pid: int) -> list[int]:
 
 
 @pytest.mark.engine
+@pytest.mark.slow  # ~8 s
 @linux_only
 def test_sigkill_mid_run_then_resume_matches_the_uninterrupted_run(mixed, tmp_path):
     m, ref_out, ref_proc, _ = mixed
@@ -504,6 +505,7 @@ MEASURE = textwrap.dedent(
 
 
 @pytest.mark.engine
+@pytest.mark.slow  # ~13 s
 @needs_bunny
 @linux_only
 def test_two_million_points_register_within_2_gb_per_worker(tmp_path):

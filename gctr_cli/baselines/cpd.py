@@ -52,8 +52,9 @@ def cpd_rigid(X: np.ndarray, Y: np.ndarray, w: float = 0.1, max_iterations: int 
     tiny = np.finfo(float).tiny
     q_prev = np.inf
     converged = False
-    it = 0
-    for it in range(1, max_iterations + 1):
+    it = 0  # iterations run; reported in the result
+    while it < max_iterations:
+        it += 1
         # E-step
         TY = s * Y @ R.T + t
         P = np.exp(_sq_dists(TY, X) / (-2.0 * sigma2))

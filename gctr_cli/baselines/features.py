@@ -38,7 +38,8 @@ def _features(prep, cfg: BaselineConfig) -> tuple[Any, Any, Any, Any, float]:
         down = voxel_down(to_o3d(cloud.points), voxel, name)
         down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=f.normal_radius_factor * voxel,
                                                                    max_nn=f.normal_max_nn))
-        feat = o3d.pipelines.registration.compute_fpfh_feature(
+        # open3d's stubs omit the default of `indices` (empty = every point), which the binding has
+        feat = o3d.pipelines.registration.compute_fpfh_feature(  # type: ignore[call-arg]
             down, o3d.geometry.KDTreeSearchParamHybrid(radius=f.feature_radius_factor * voxel, max_nn=f.feature_max_nn))
         if feat.data.shape[1] != len(down.points) or not np.all(np.isfinite(feat.data)):
             raise BaselineFailure(f"{name}: FPFH features could not be computed")
