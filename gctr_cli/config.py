@@ -93,7 +93,7 @@ class RansacConfig(_Strict):
 
 
 class OuterLoopConfig(_Strict):
-    max_iterations: int = Field(4, ge=1, le=50)
+    max_iterations: int = Field(3, ge=1, le=50)
     tol: float = Field(0.002, gt=0, description="stop when salient points move less (RMS, / diameter)")
     settle_support: int = Field(
         2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
