@@ -17,11 +17,13 @@ help:
 	@echo "make test-fast     the test suite without the tests marked slow (pytest -m 'not slow')"
 	@echo "make lint          ruff check (rules in pyproject.toml)"
 	@echo "make typecheck     mypy with the pydantic plugin (packages in pyproject.toml)"
-	@echo "make bench-engine  full engine benchmark on the report set (seed 0) -> bench/ENGINE.md (tens of minutes)"
+	@echo "make bench-engine  full engine benchmark on the report set (seed 0) -> bench/ENGINE.md (tens of minutes),"
+	@echo "                   per-stage times compared with bench/stages-before-speed.md (before the speed work)"
 	@echo "make bench-engine-tune  the same on the tuning set (seed 1) -> bench/work/ENGINE-seed1.md"
 	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the report set -> bench/RESULTS.md (long)"
 	@echo "make bench-quick   the same on 15 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
-	@echo "make bench-process whole-process time of gctr register vs an Open3D script, one core -> bench/PROCESS.md"
+	@echo "make bench-process whole-process time of gctr register (engine + comparison methods) vs an Open3D script,"
+	@echo "                   one core -> bench/PROCESS.md"
 	@echo "make bench-data       generate the REPORT set (--seed 0, all levels) -> bench/work/data"
 	@echo "make bench-data-tune  generate the TUNING set (--seed 1, all levels) -> bench/work/data-seed1"
 	@echo "                      (tune the engine on seed 1, report on seed 0; level scene reads SHARED=$(SHARED))"
@@ -80,7 +82,8 @@ typecheck: setup
 
 # Report set (--seed 0) -> bench/ENGINE.md + bench/confidence_tradeoff.png; tuning set (--seed 1) -> bench/work/.
 bench-engine: bench-data
-	$(BIN)/python -m data_scripts.bench_engine --seed 0 --data bench/work/data --levels $(BENCH_LEVELS) --out bench/ENGINE.md
+	$(BIN)/python -m data_scripts.bench_engine --seed 0 --data bench/work/data --levels $(BENCH_LEVELS) --out bench/ENGINE.md \
+		--stages-before bench/stages-before-speed.md
 
 bench-engine-tune: bench-data-tune
 	$(BIN)/python -m data_scripts.bench_engine --seed 1 --data bench/work/data-seed1 --levels $(BENCH_LEVELS) \
@@ -111,7 +114,8 @@ bench: setup bench-deps
 bench-quick: setup bench-deps
 	$(BIN)/python -m data_scripts.bench_compare --quick
 
-# Whole-process time of gctr register vs the equivalent Open3D script, one core (issue 10): bench/PROCESS.md.
+# Whole-process time of gctr register (GCTR engine and every comparison method, -c with method: X) vs the
+# equivalent Open3D script, one core (issue 10): bench/PROCESS.md. kiss_matcher needs bench-deps.
 .PHONY: bench-process
-bench-process: setup
+bench-process: setup bench-deps
 	$(BIN)/python -m data_scripts.bench_process --out bench/PROCESS.md

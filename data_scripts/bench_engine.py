@@ -44,6 +44,12 @@ The report gets the verdict table per level, the confidence-threshold sweep (tab
 Data: ``--seed 0`` (default) is the report set in ``bench/work/data``, ``--seed 1`` the tuning set in
 ``bench/work/data-seed1``; each is generated on first use with all eight levels.
 
+Issue 10 (engine speed): ``--stages-before PATH`` reads the "Time per stage" table of an earlier report
+(``make bench-engine`` passes ``bench/stages-before-speed.md``, the table of the engine before the speed
+work) and adds, right after this run's per-stage table, that table verbatim with where it comes from
+(``--stages-before-note``) and a before → now comparison of the mean seconds per stage over all pairs
+(the ``all`` column of the old table, cells like ``0.662 (26%)``) with the ratio now / before.
+
 Outputs: ``bench/work/<variant>_pairs.csv`` (one row per pair; compare runs with it) and the
 markdown report ``--out`` (``--append`` adds or replaces the section of this variant). Everything
 except timings, memory, date and load average is deterministic.
@@ -113,6 +119,11 @@ VARIANT_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 class BenchError(Exception):
     """A problem with the benchmark's inputs (config, data, arguments)."""
+
+
+#: where bench/stages-before-speed.md comes from (the default of --stages-before-note)
+STAGES_BEFORE_NOTE = "engine of commit 087c5db, same report set, one worker"
+STAGE_CELL_RE = re.compile(r"^(\d+(?:\.\d*)?|\.\d+)\s*\(\s*\d+(?:\.\d*)?%\)$")  # "0.662 (26%)"
 
 
 # ============================================================================================ child
@@ -614,6 +625,9 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
         out.append(f"| {'**total**' if s == 'total' else s} | " + " | ".join(cells) + " |")
     out.append("")
 
+    if info.get("stages_before"):
+        out += render_stages_before(info["stages_before"], stage_means(rows, stages), levels, info)
+
     # failures
     failed = [r for r in rows if not r.get("success")]
     out += ["### Failed pairs", ""]
@@ -629,6 +643,80 @@ def render_section(rows: list[dict[str, Any]], levels: list[str], info: dict[str
                        f"| {_num(r.get('time_s'), '.2f')} | {msg} |")
     out += ["", SECTION_END, ""]
     return "\n".join(out)
+
+
+def read_stage_table(text: str, origin: str = "the file") -> dict[str, Any]:
+    """The "Time per stage" table of an earlier report: ``lines`` (verbatim), ``levels`` (its level columns),
+    ``means`` (stage -> mean seconds per pair over all pairs: the ``all`` column, cells like ``0.662 (26%)``;
+    ``total`` for the ``**total**`` row). Raises :class:`BenchError` when there is no such table."""
+    lines = text.splitlines()
+    heading = next((i for i, line in enumerate(lines) if line.strip() == "### Time per stage"), 0)
+    start = next((i for i in range(heading, len(lines)) if lines[i].lstrip().startswith("| stage |")), None)
+    if start is None:
+        raise BenchError(f"{origin}: no table with a '| stage |' header (the \"### Time per stage\" table)")
+    end = start
+    while end < len(lines) and lines[end].lstrip().startswith("|"):
+        end += 1
+    table = lines[start:end]
+
+    def cells(line: str) -> list[str]:
+        return [c.strip() for c in line.strip().strip("|").split("|")]
+
+    header = cells(table[0])
+    if "all" not in header:
+        raise BenchError(f"{origin}: the stage table has no 'all' column (columns: {', '.join(header)})")
+    col = header.index("all")
+    means: dict[str, float] = {}
+    for line in table[2:]:
+        row = cells(line)
+        if len(row) != len(header):
+            raise BenchError(f"{origin}: stage table row with {len(row)} cells, header has {len(header)}: {line}")
+        stage = row[0].strip("*").strip()
+        if row[col] in ("–", "-", ""):
+            continue
+        m = STAGE_CELL_RE.match(row[col])
+        if m is None:
+            raise BenchError(f"{origin}: cannot read the 'all' cell of stage {stage!r}: {row[col]!r} "
+                             "(expected seconds and share, like '0.662 (26%)')")
+        means[stage] = float(m.group(1))
+    if not means:
+        raise BenchError(f"{origin}: the stage table has no rows")
+    return {"lines": table, "levels": [h for h in header[1:] if h != "all"], "means": means}
+
+
+def stage_means(rows: list[dict[str, Any]], stages: list[str]) -> dict[str, float]:
+    """Mean seconds per pair of every stage, ``other`` and ``total`` over all pairs that ran (the ``all``
+    column of the per-stage table)."""
+    ran = [flat_row(r, stages) for r in rows if "time_s" in r]
+    if not ran:
+        return {}
+    keys = {s: f"t_{s}" for s in [*stages, "other"]} | {"total": "time_s"}
+    return {s: sum(r[k] for r in ran) / len(ran) for s, k in keys.items()}
+
+
+def render_stages_before(before: dict[str, Any], now: dict[str, float], levels: list[str],
+                         info: dict[str, Any]) -> list[str]:
+    """Issue 10: the per-stage table of the engine before the speed work, verbatim, and before -> now."""
+    out = ["### Time per stage before the speed work (issue 10)", "",
+           f"From `{before['path']}`: {before['note']}.", "", *before["lines"], "",
+           "Mean seconds per pair over all pairs (`all` column), before → now:", ""]
+    notes = []
+    if sorted(before["levels"]) != sorted(levels):
+        notes.append(f"the levels differ (before: {', '.join(before['levels']) or 'none'}; now: "
+                     f"{', '.join(levels)}), so the means are not over the same pairs")
+    if info.get("quick"):
+        notes.append("this run is --quick (a subset of the pairs)")
+    if notes:
+        out += ["**Not like for like:** " + "; ".join(notes) + ".", ""]
+    out += ["| stage | before (s) | now (s) | now / before |", "|---|---:|---:|---:|"]
+    order = [s for s in before["means"] if s not in ("other", "total")]
+    order += [s for s in now if s not in before["means"] and s not in ("other", "total") and now[s] > 0]
+    for s in [*order, "other", "total"]:
+        b, n = before["means"].get(s), now.get(s)
+        ratio = f"{n / b:.2f}" if b and n is not None else "–"
+        name = "**total**" if s == "total" else s
+        out.append(f"| {name} | {_num(b, '.3f')} | {_num(n, '.3f')} | {ratio} |")
+    return [*out, ""]
 
 
 def render_verdicts(rows: list[dict[str, Any]], levels: list[str], info: dict[str, Any]) -> list[str]:
@@ -804,6 +892,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-j", "--jobs", type=int, default=1, help="pairs run at once (default 1: the speed target)")
     p.add_argument("--time-limit", type=float, default=600.0, help="seconds per pair before it is killed")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-pair progress lines")
+    p.add_argument("--stages-before", type=Path, default=None, metavar="PATH",
+                   help="markdown file with an earlier \"Time per stage\" table: shown after this run's with a "
+                        "before -> now comparison of its 'all' column (make bench-engine: "
+                        "bench/stages-before-speed.md)")
+    p.add_argument("--stages-before-note", default=STAGES_BEFORE_NOTE, metavar="TEXT",
+                   help="where the --stages-before table comes from (default: %(default)s)")
     return p
 
 
@@ -858,6 +952,13 @@ def main(argv: list[str] | None = None) -> int:
         levels = [lv.strip() for lv in args.levels.split(",") if lv.strip()]
         if not levels:
             raise BenchError("--levels is empty")
+        stages_before = None
+        if args.stages_before is not None:
+            try:
+                before_text = args.stages_before.read_text()
+            except OSError as err:
+                raise BenchError(f"--stages-before: {err}") from None
+            stages_before = read_stage_table(before_text, f"--stages-before {args.stages_before}")
         config_path = args.config if args.config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
         config, config_dict = resolve_config(config_path, args.overrides)
         data = args.data if args.data is not None else default_data(args.seed)
@@ -920,6 +1021,8 @@ def main(argv: list[str] | None = None) -> int:
         + ("" if code_fingerprint(config_path) == fingerprint else
            " — **these files changed during the run: pairs ran on different code, re-run this variant**"),
     }
+    if stages_before is not None:
+        info["stages_before"] = {**stages_before, "path": shown(args.stages_before), "note": args.stages_before_note}
     write_report(args.out, render_section(rows, levels, info), args.variant, args.append)
     n_ok = sum(1 for r in rows if r.get("success"))
     print(f"{n_ok}/{len(rows)} pairs succeeded; {csv_path}; report {args.out}", file=sys.stderr)

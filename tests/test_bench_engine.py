@@ -212,3 +212,69 @@ def test_render_verdicts_and_targets():
     assert targets["`part`"] == ("1/2 (50.0%), 2 models/scenes", False)
     assert targets["silent wrong ≤ 1% of all pairs over all levels"] == ("2/4 (50.0%)", False)
     assert be.SUCCESS_TARGETS["scene"] == 0.80 and be.SUCCESS_TARGETS["sfm"] == 0.95
+
+
+# ------------------------------------------------------------------------------------------ issue 10 stages before
+def test_read_stage_table_of_the_committed_before_file():
+    path = REPO / "bench" / "stages-before-speed.md"
+    before = be.read_stage_table(path.read_text(), str(path))
+    assert before["levels"] == ["easy", "cross", "hard", "real", "part", "lowoverlap", "sfm", "scene"]
+    assert before["means"]["tensor"] == 0.662 and before["means"]["verdict"] == 0.257
+    assert before["means"]["other"] == 0.017 and before["means"]["total"] == 2.551
+    assert list(before["means"])[:2] == ["preprocess", "supervoxels"]
+    assert before["lines"][0].startswith("| stage | easy |") and before["lines"][-1].startswith("| **total** |")
+    assert "\n".join(before["lines"]) in path.read_text()  # verbatim
+
+
+def test_read_stage_table_rejects_what_it_cannot_read():
+    with pytest.raises(be.BenchError, match="no table"):
+        be.read_stage_table("# nothing here\n")
+    with pytest.raises(be.BenchError, match="no 'all' column"):
+        be.read_stage_table("| stage | cross |\n|---|---:|\n| tensor | 0.5 (50%) |\n")
+    with pytest.raises(be.BenchError, match="cannot read the 'all' cell of stage 'tensor'"):
+        be.read_stage_table("| stage | all |\n|---|---:|\n| tensor | fast |\n")
+
+
+def test_stages_before_section_follows_the_stage_table_with_before_now_ratio():
+    before_text = ("### Time per stage\n\nsome words\n\n| stage | cross | all |\n|---|---:|---:|\n"
+                   "| tensor | 1.000 (50%) | 1.000 (50%) |\n| verdict | 0.500 (25%) | 0.500 (25%) |\n"
+                   "| other | 0.500 (25%) | 0.500 (25%) |\n| **total** | 2.000 (100%) | 2.000 (100%) |\n\nmore\n")
+    before = be.read_stage_table(before_text)
+    assert before["means"] == {"tensor": 1.0, "verdict": 0.5, "other": 0.5, "total": 2.0}
+    rows = [{"pair_id": f"p{i}", "level": "cross", "model": "m", "status": "ok", "success": True, "time_s": t,
+             "cpu_s": t, "load_s": 0.01, "n_source": 100, "n_target": 100, "peak_rss_mb": 1.0,
+             "rss_baseline_mb": 1.0, "rss_increment_mb": 0.0, "timings": {"tensor": tt, "ransac": 0.1}}
+            for i, (t, tt) in enumerate([(0.8, 0.4), (1.2, 0.6)])]
+    means = be.stage_means(rows, be.stage_names(rows))
+    assert means["tensor"] == pytest.approx(0.5) and means["total"] == pytest.approx(1.0)
+    assert means["other"] == pytest.approx(0.4)
+    info = {"variant": "v", "date": "d", "command": "c", "load_before": 1.0, "load_after": 1.0,
+            "machine": {"cores": "2", "cpu": "x", "python": "3", "numpy": "2", "scipy": "1"},
+            "config_source": "built-in defaults", "overrides": [], "config_hash": "h", "seed": 0,
+            "success": {"rotation_deg": 5.0, "translation_rel": 0.05, "scale": 0.05}, "data": "d", "csv": "c",
+            "quick": False, "jobs": 1, "wall_s": 2.0, "code": "git `x`",
+            "stages_before": {**before, "path": "bench/stages-before-speed.md", "note": be.STAGES_BEFORE_NOTE}}
+    text = be.render_section(rows, ["cross"], info)
+    stage_table = text.index("### Time per stage\n")
+    section = text.index("### Time per stage before the speed work (issue 10)")
+    assert stage_table < section < text.index("### Failed pairs")
+    assert "| **total** | 1.000 (100%) |" in text[stage_table:section]  # the current table comes first
+    assert ("From `bench/stages-before-speed.md`: engine of commit 087c5db, same report set, one worker."
+            in text[section:])
+    assert "\n".join(before["lines"]) in text[section:]
+    lines = text[section:].splitlines()
+    comparison = lines[lines.index("| stage | before (s) | now (s) | now / before |"):]
+    assert comparison[2:8] == ["| tensor | 1.000 | 0.500 | 0.50 |", "| verdict | 0.500 | – | – |",
+                               "| ransac | – | 0.100 | – |", "| other | 0.500 | 0.400 | 0.80 |",
+                               "| **total** | 2.000 | 1.000 | 0.50 |", ""]
+    assert "Not like for like" not in text
+    assert "the levels differ" in be.render_section(rows, ["cross"], {**info, "stages_before": {
+        **info["stages_before"], "levels": ["cross", "hard"]}})
+    assert "### Time per stage before" not in be.render_section(rows, ["cross"], {**info, "stages_before": None})
+
+
+def test_stages_before_option_fails_early_on_a_bad_file(tmp_path, capsys):
+    bad = tmp_path / "before.md"
+    bad.write_text("no table\n")
+    assert be.main(["--data", str(tmp_path / "nodata"), "--stages-before", str(bad)]) == 2
+    assert "no table" in capsys.readouterr().err
