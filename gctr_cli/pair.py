@@ -19,12 +19,12 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from gctr_cli.config import Config
+from gctr_cli.methods import RegisterFn
 from gctr_cli.outcome import SNAPSHOT_LOGGER, PairOutcome, exc_message, failed_outcome
 
 logger = logging.getLogger(__name__)
@@ -32,7 +32,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["RegisterFn", "default_register", "derive_seed", "limit_native_threads", "resolve_ref",
            "resolve_register_fn", "run_pair"]
 
-RegisterFn = Callable[..., Any]
 
 
 def derive_seed(base_seed: int, pair_id: str) -> int:
