@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: up to this many points, already drawn vertex sets are marked in a table of m^3 booleans
+_SEEN_TABLE_MAX_POINTS = 256
+
 
 def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random.Generator,
                      min_angle_deg: float = 10.0, max_rounds: int = 8, max_edge: float = np.inf) -> np.ndarray:
@@ -36,6 +39,10 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
     anchors = np.flatnonzero(n_near >= 2)
     if len(anchors) == 0:
         return np.empty((0, 3), dtype=np.int64)
+    # Each draw is kept only the first time its vertex set comes up (seeded, deterministic); a
+    # table over all vertex triples (m^3 booleans, allocated lazily) marks what is already kept.
+    seen = np.zeros(m * m * m, dtype=bool) if m <= _SEEN_TABLE_MAX_POINTS else None
+    kept_keys: list[np.ndarray] = []
     found: list[np.ndarray] = []
     have = 0
     batch = max(2 * n, 1000)
@@ -51,19 +58,22 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
         ok = np.all(cos <= max_cos, axis=1)
         tri = np.stack([i[ok], j[ok], k[ok]], axis=1)
         # canonical vertex order (ascending cosine: largest angle first), from the cosines at hand
-        found.append(np.take_along_axis(tri, np.argsort(cos[ok], axis=1, kind="stable"), axis=1))
-        have += len(tri)
-        if have >= n and len(_first_unique(np.concatenate(found), m)) >= n:
+        tri = np.take_along_axis(tri, np.argsort(cos[ok], axis=1, kind="stable"), axis=1)
+        srt = np.sort(tri, axis=1).astype(np.int64)
+        key = (srt[:, 0] * m + srt[:, 1]) * m + srt[:, 2]
+        _, first = np.unique(key, return_index=True)
+        first = np.sort(first)  # first draw of each vertex set within this round, in draw order
+        tri, key = tri[first], key[first]
+        if seen is not None:
+            new = ~seen[key]
+            seen[key[new]] = True
+        else:
+            new = ~np.isin(key, np.concatenate(kept_keys)) if kept_keys else np.ones(len(key), dtype=bool)
+            kept_keys.append(key[new])
+        found.append(tri[new])
+        have += int(new.sum())
+        if have >= n:
             break  # the first n distinct draws are final: more rounds would not change them
-    tri = np.concatenate(found) if found else np.empty((0, 3), dtype=np.int64)
-    if len(tri) == 0:
-        return tri
-    return tri[_first_unique(tri, m)][:n].astype(np.int64)
-
-
-def _first_unique(tri: np.ndarray, m: int) -> np.ndarray:
-    """Indices, in draw order, of the first draw of each distinct vertex set (seeded, deterministic)."""
-    srt = np.sort(tri, axis=1).astype(np.int64)
-    key = (srt[:, 0] * m + srt[:, 1]) * m + srt[:, 2]
-    _, first = np.unique(key, return_index=True)
-    return np.sort(first)
+    if not found:
+        return np.empty((0, 3), dtype=np.int64)
+    return np.concatenate(found)[:n].astype(np.int64)
