@@ -57,6 +57,7 @@ import argparse  # noqa: E402
 import csv  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
+import re  # noqa: E402
 import shlex  # noqa: E402
 import shutil  # noqa: E402
 import subprocess  # noqa: E402
@@ -785,6 +786,7 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
                  f"{_num(st['time_p90'], '.2f')} | {_num(peak, '.0f')} |")
     L.append("")
 
+    L += single_core_section(stats, methods, meta)
     # paper quantities
     L.append("## The paper's quantities (beside its Table 1)")
     L.append("")
@@ -883,6 +885,51 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
              "config.yaml) and `" + str(meta["work_rel"]) + "/rows.csv`.")
     L.append("")
     return "\n".join(L)
+
+
+PROCESS_REPORT = REPO_ROOT / "bench" / "PROCESS.md"
+
+
+def process_times(path: Path) -> dict[str, float]:
+    """Median whole-process wall times (s) from a ``bench/PROCESS.md`` table, keyed by method
+    (``gctr`` for plain ``gctr register``, ``open3d_script`` for the Open3D script); {} if absent."""
+    if not path.is_file():
+        return {}
+    out: dict[str, float] = {}
+    for line in path.read_text(encoding="utf-8").splitlines():
+        m = re.match(r"\| `(gctr register(?:, method (\w+))?|Open3D script)` \| ([0-9.]+) \|", line)
+        if m:
+            key = m.group(2) or ("gctr" if m.group(1) == "gctr register" else "open3d_script")
+            out[key] = float(m.group(3))
+    return out
+
+
+def single_core_section(stats, methods, meta: dict[str, Any]) -> list[str]:
+    """Issue 10: per method, the registration time per pair of this run (one worker = one core) and
+    the wall time of one whole ``gctr register`` process from ``bench/PROCESS.md``."""
+    proc = process_times(PROCESS_REPORT)
+    gctr_t = stats[("gctr", "all")]["time_med"] if ("gctr", "all") in stats else math.nan
+    L = ["## Single core: time per pair and whole process (issue 10)", "",
+         f"Registration time per pair: median `runtime_s` over all pairs of this run, one worker per batch "
+         f"(`{meta.get('command', 'python -m data_scripts.bench_compare')}`; each batch process and its worker "
+         "use one core, BLAS/OpenMP single-threaded; KISS-Matcher runs its own TBB threads). Whole process: "
+         "median wall time of `gctr register -c <method config> SOURCE TARGET -o MATRIX` on one 20k/20k-point "
+         "pair pinned to one core, from `bench/PROCESS.md` (`make bench-process`, "
+         "`python -m data_scripts.bench_process`; reading, imports and writing included)"
+         + (f"; the 30-line Open3D script (`data_scripts/open3d_register.py`) takes {proc['open3d_script']:.2f} s."
+            if "open3d_script" in proc else "; no bench/PROCESS.md yet."),
+         "",
+         "| method | registration time per pair (s) | × gctr | whole process, one pair (s) |",
+         "|---|---:|---:|---:|"]
+    for m in methods:
+        st = stats.get((m, "all"))
+        if st is None:
+            continue
+        whole = proc.get(m)
+        L.append(f"| {m} | {_num(st['time_med'], '.2f')} | {_num(st['time_med'] / gctr_t, '.2f')} | "
+                 f"{_num(whole, '.2f') if whole is not None else '–'} |")
+    L.append("")
+    return L
 
 
 def render_verdicts(rows, methods, levels, configured: float | None) -> list[str]:

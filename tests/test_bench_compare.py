@@ -271,3 +271,16 @@ def test_compare_load_rows_confidence_and_would_succeed(tmp_path):
     assert rows["p0"]["confidence"] == 0.8 and rows["p0"]["would_succeed"] is True and rows["p0"]["success"]
     assert rows["p1"]["confidence"] == 0.1 and rows["p1"]["would_succeed"] is True and not rows["p1"]["success"]
     assert math.isnan(rows["p2"]["confidence"]) and rows["p2"]["would_succeed"] is None
+
+
+def test_process_times_reads_the_process_report(tmp_path):
+    from data_scripts.bench_compare import process_times
+
+    report = tmp_path / "PROCESS.md"
+    report.write_text(
+        "| command | wall median (s) | wall min (s) |\n|---|---:|---:|\n"
+        "| `gctr register` | 1.846 | 1.580 |\n"
+        "| `gctr register, method kiss_matcher` | 2.795 | 2.262 |\n"
+        "| `Open3D script` | 2.411 | 2.019 |\n| `gctr --help` | 0.170 | 0.111 |\n", encoding="utf-8")
+    assert process_times(report) == {"gctr": 1.846, "kiss_matcher": 2.795, "open3d_script": 2.411}
+    assert process_times(tmp_path / "missing.md") == {}
