@@ -43,7 +43,7 @@ from gctr_cli.errors import BatchError, ExecutorLost, LockError
 from gctr_cli.executors import EXECUTORS, check_executor, outcomes, register_ref
 from gctr_cli.fsutil import THREAD_ENV_VARS, atomic_write
 from gctr_cli.lock import LOCK_NAME, OutdirLock
-from gctr_cli.manifest import pair_id_problem
+from gctr_cli.manifest import pair_ids_problem
 from gctr_cli.outcome import ERRORS_COLUMNS, MATRIX_COLUMNS, TRANSFORMS_COLUMNS, PairOutcome, exc_message
 from gctr_cli.outdir import ALIGNED_DIR, CONFIG_FILE, REPORT_FILE, SNAPSHOTS_DIR, Outputs, prepare_outdir
 from gctr_cli.pair import RegisterFn, derive_seed, run_pair
@@ -88,14 +88,9 @@ def resolve_workers(requested: int | None, config: Config) -> int:
 
 def _check_pair_ids(pairs: Sequence[Any]) -> None:
     """The manifest reader checks these with line numbers; pairs built in code are checked here."""
-    seen: set[str] = set()
-    for p in pairs:
-        problem = pair_id_problem(p.pair_id)
-        if problem:
-            raise BatchError(f"pair_id {p.pair_id!r} {problem} (it names files: matrices/<pair_id>.txt)")
-        if p.pair_id in seen:
-            raise BatchError(f"duplicate pair_id {p.pair_id!r}")
-        seen.add(p.pair_id)
+    problem = pair_ids_problem(pairs, "it names files: matrices/<pair_id>.txt")
+    if problem:
+        raise BatchError(problem)
 
 
 def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> None:

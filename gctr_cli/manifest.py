@@ -184,6 +184,21 @@ def _format_path(p: Path, base: Path) -> str:
         return str(p)
 
 
+def pair_ids_problem(pairs: Sequence[PairSpec], unsafe_hint: str) -> str | None:
+    """The first problem among the pair ids of ``pairs`` in words (an id unsafe as a file name, with
+    ``unsafe_hint`` appended in brackets, or a duplicate), or None. For pairs built in code; the
+    manifest reader reports the same problems with line numbers."""
+    seen: set[str] = set()
+    for p in pairs:
+        problem = pair_id_problem(p.pair_id)
+        if problem:
+            return f"pair_id {p.pair_id!r} {problem} ({unsafe_hint})"
+        if p.pair_id in seen:
+            return f"duplicate pair_id {p.pair_id!r}"
+        seen.add(p.pair_id)
+    return None
+
+
 def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: Path | None = None) -> None:
     """Write ``pairs`` as a manifest CSV (header ``pair_id,source,target`` plus ``gt`` if any pair has one).
 
@@ -195,14 +210,9 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
     path = Path(path)
     if not pairs:
         raise ManifestError(f"{path}: refusing to write a manifest without pairs")
-    seen: set[str] = set()
-    for p in pairs:
-        problem = pair_id_problem(p.pair_id)
-        if problem:
-            raise ManifestError(f"{path}: pair_id {p.pair_id!r} {problem} (unsafe as a file name)")
-        if p.pair_id in seen:
-            raise ManifestError(f"{path}: duplicate pair_id '{p.pair_id}'")
-        seen.add(p.pair_id)
+    problem = pair_ids_problem(pairs, "unsafe as a file name")
+    if problem:
+        raise ManifestError(f"{path}: {problem}")
 
     base = Path(relative_to) if relative_to is not None else path.parent
     base = _absolute(base)
