@@ -5,6 +5,7 @@ is the confidence (:mod:`gctr_cli.engine.verdict` has the measures)."""
 from __future__ import annotations
 
 import time
+from itertools import islice
 
 import numpy as np
 
@@ -76,10 +77,10 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     T_answer, agreement = refined[0]
     # Rivals: the other refined finalists, and (unrefined, so at a disadvantage) the best of the
     # rest of the pool — finalists can converge onto the answer when refined.
-    others = [(T, a) for T, a in refined[1:]]
-    unrefined = [T for T, _ in pool if distinct(T, T_answer)][:v.rival_pool]
-    others += [(T, _tight_agreement(T, src_ref, tgt_ref, cfg)) for T in unrefined]
-    rival_score = max([a.score for T, a in others if distinct(T, T_answer)], default=0.0)
+    rivals = [a.score for T, a in refined[1:] if distinct(T, T_answer)]
+    unrefined = islice((T for T, _ in pool if distinct(T, T_answer)), v.rival_pool)
+    rivals += [_tight_agreement(T, src_ref, tgt_ref, cfg).score for T in unrefined]
+    rival_score = max(rivals, default=0.0)
     support = sum(not distinct(T_answer, c.transform) for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)
     return T_answer, Verdict(confidence=conf, score=agreement.score, rival_score=rival_score, agreement=agreement,

@@ -94,7 +94,8 @@ def outer_loop(src: PreparedCloud, tgt: PreparedCloud, H3: SparseTensor3, overla
     seen: list[tuple[np.ndarray, Agreement]] = []
     for it in range(1, cfg.outer.max_iterations + 1):  # noqa: B007 (the count is reported)
         t = time.perf_counter()
-        H1 = build_first_order(apply(T, S), Q, cfg.tensor.first_order_sigma) if T is not None else None
+        H1 = (build_first_order(apply(T, S), Q, cfg.tensor.first_order_sigma, tgt_tree=tgt.salient_tree)
+              if T is not None else None)
         t = timer.add("tensor", t)
         X, _ = power_iteration(H3, H1, cfg.tensor.first_order_weight, cfg.power_iteration.iterations,
                                cfg.power_iteration.tol, cfg.power_iteration.normalisation_rounds, start=X)

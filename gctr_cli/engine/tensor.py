@@ -95,11 +95,11 @@ def entry_scores(tensor: SparseTensor3, x: np.ndarray) -> np.ndarray:
 
 
 def build_first_order(src_points_moved: np.ndarray, tgt_points: np.ndarray, sigma: float,
-                      radius_factor: float = 3.0) -> SparseVector:
+                      radius_factor: float = 3.0, tgt_tree: cKDTree | None = None) -> SparseVector:
     """Point-to-point similarity ``exp(-||T p_i - q_i'||^2 / sigma^2)`` for pairs within
     ``radius_factor * sigma`` (a sparse radius query; everything farther is ~0)."""
     n1, n2 = len(src_points_moved), len(tgt_points)
-    tree_t = cKDTree(tgt_points)
+    tree_t = tgt_tree if tgt_tree is not None else cKDTree(tgt_points)
     pairs = cKDTree(src_points_moved).sparse_distance_matrix(tree_t, radius_factor * sigma, output_type="ndarray")
     if len(pairs) == 0:
         return SparseVector(np.empty(0, dtype=np.int64), np.empty(0), n1, n2)
