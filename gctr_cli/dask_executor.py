@@ -374,6 +374,7 @@ def dask_outcomes(
 
     quiet = _QuietDistributed()
     client, cluster = _connect(scheduler, max(1, min(n_workers, len(tasks))))
+    quiet.start()
     pending: deque[tuple[Any, int]] = deque(tasks)
     inflight: dict[Any, _InFlight] = {}
     run_id = uuid.uuid4().hex[:8]
@@ -501,16 +502,24 @@ def dask_outcomes(
 
 
 class _QuietDistributed:
-    """While the client shuts down, distributed's own log records stay off stderr (they are tracebacks
-    of a reconnection that no longer matters; gctr says what happened in one line), unless gctr logs at
-    DEBUG level (``-vv``)."""
+    """distributed's informational records stay off stderr while the batch runs, and all of its records
+    while the client shuts down (they are tracebacks of a reconnection that no longer matters; gctr says
+    what happened in one line), unless gctr logs at DEBUG level (``-vv``)."""
 
     NAMES = ("distributed", "tornado")
 
     def __init__(self) -> None:
         self.saved: dict[str, int] = {}
 
+    def start(self) -> None:
+        """While the batch runs, distributed's informational messages stay off stderr (a lost scheduler
+        makes its I/O thread log "Batched Comm Closed" with a traceback before gctr notices)."""
+        self._raise_to(logging.WARNING)
+
     def close(self) -> None:
+        self._raise_to(logging.CRITICAL + 1)
+
+    def _raise_to(self, level: int) -> None:
         if logger.isEnabledFor(logging.DEBUG):
             return
         # dask's logging config gives some children their own level (distributed.client): set each one
@@ -518,8 +527,9 @@ class _QuietDistributed:
                  if any(n == p or n.startswith(p + ".") for p in self.NAMES)]
         for name in set(names) | set(self.NAMES):
             log = logging.getLogger(name)
-            self.saved[name] = log.level
-            log.setLevel(logging.CRITICAL + 1)
+            self.saved.setdefault(name, log.level)  # the level before gctr touched it
+            if log.getEffectiveLevel() < level:
+                log.setLevel(level)
 
     def restore(self) -> None:
         for name, level in self.saved.items():
