@@ -153,7 +153,7 @@ class EngineConfig(_Strict):
     overlap: Literal["auto"] | float = Field("auto", description="'auto' searches 0.25/0.5/0.75/1.0")
     overlap_candidates: tuple[float, ...] = Field((0.25, 0.5, 0.75, 1.0), description="ratios tried by 'auto'")
     part_regions: tuple[float, ...] = Field(
-        (0.6,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
+        (0.45,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")

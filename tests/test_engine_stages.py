@@ -610,3 +610,42 @@ def test_point_to_plane_icp_refines_perturbed_transform(seed):
     _, R_est, _ = split(T)
     np.testing.assert_allclose(R_est @ R_est.T, np.eye(3), atol=1e-9)
     np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+
+
+# ------------------------------------------------------------------------------------ overlap plan
+def test_part_hypotheses_run_with_the_part_as_source():
+    """A hypothesis whose target is the part is flagged and swapped; the swapped one's scale prior is the
+    inverse of the original's (the search runs it from the target to the source)."""
+    from gctr_cli.engine.search import search_plan
+
+    plan = {h.name: h for h in search_plan(EngineConfig())}
+    src_part = plan["source inside target (0.45)"]
+    tgt_part = plan["target inside source (0.45)"]
+    assert not src_part.target_is_part and tgt_part.target_is_part
+    assert not any(h.target_is_part for n, h in plan.items() if n.startswith("overlap"))
+    swapped = tgt_part.swapped()
+    assert (swapped.region_src, swapped.region_tgt) == (1.0, 0.45) and not swapped.target_is_part
+    lo, hi = tgt_part.scale_prior((0.01, 100.0))
+    lo_s, hi_s = swapped.scale_prior((0.01, 100.0))
+    assert lo == pytest.approx(1.0 / hi_s) and hi == pytest.approx(1.0 / lo_s)
+    assert swapped.scale_prior((0.01, 100.0)) == src_part.scale_prior((0.01, 100.0))
+
+
+def test_reversed_candidate_inverts_transforms_and_swaps_shares():
+    from gctr_cli.engine.search import Candidate
+    from gctr_cli.engine.verdict import Agreement
+    from gctr_cli.geometry import to_matrix
+
+    rng = np.random.default_rng(3)
+    T = to_matrix(1.7, Rotation.random(random_state=4).as_matrix(), rng.normal(size=3))
+    alt = to_matrix(0.6, Rotation.random(random_state=5).as_matrix(), rng.normal(size=3))
+    c = Candidate(transform=T, n_inliers=12, iterations=2, agreement=Agreement(0.2, 0.7), overlap=0.2025,
+                  alternatives=((alt, Agreement(0.1, 0.3)),))
+    r = c.reversed()
+    assert np.allclose(r.transform @ T, np.eye(4), atol=1e-12)
+    assert (r.agreement.source, r.agreement.target) == (0.7, 0.2)
+    assert np.allclose(r.alternatives[0][0] @ alt, np.eye(4), atol=1e-12)
+    assert (r.alternatives[0][1].source, r.alternatives[0][1].target) == (0.3, 0.1)
+    assert (r.n_inliers, r.iterations, r.overlap) == (12, 2, 0.2025)
+    back = r.reversed()
+    assert np.allclose(back.transform, T, atol=1e-12) and back.agreement == c.agreement

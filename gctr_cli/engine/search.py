@@ -21,7 +21,7 @@ from gctr_cli.engine.similarity import best_similarity
 from gctr_cli.engine.tensor import SparseTensor3, build_first_order, build_third_order, decode, entry_scores
 from gctr_cli.engine.triplets import sample_triangles
 from gctr_cli.engine.verdict import Agreement, displacement, surface_agreement
-from gctr_cli.geometry import apply, to_matrix
+from gctr_cli.geometry import apply, invert, to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +47,15 @@ class Candidate:
     @property
     def score(self) -> float:
         return self.agreement.score
+
+    def reversed(self) -> Candidate:
+        """The same candidate for the swapped pair (target -> source): inverted transforms, the two
+        agreement shares exchanged."""
+        def swap(a: Agreement) -> Agreement:
+            return Agreement(source=a.target, target=a.source)
+        return Candidate(transform=invert(self.transform), n_inliers=self.n_inliers, iterations=self.iterations,
+                         agreement=swap(self.agreement), overlap=self.overlap,
+                         alternatives=tuple((invert(T), swap(a)) for T, a in self.alternatives))
 
 
 def dense_scores(src: PreparedCloud, tgt: PreparedCloud, hyp: Hypotheses, distance: float,
@@ -154,6 +163,16 @@ class OverlapHypothesis:
     region_tgt: float
     overlap: float
 
+    @property
+    def target_is_part(self) -> bool:
+        """The target is the part (the whole target overlaps a smaller region of the source): the search
+        runs from the target to the source (see :func:`search`)."""
+        return self.region_src < self.region_tgt
+
+    def swapped(self) -> OverlapHypothesis:
+        """The same hypothesis with the roles of the clouds exchanged."""
+        return OverlapHypothesis(self.name, self.region_tgt, self.region_src, self.overlap)
+
     def scale_prior(self, bounds_n: tuple[float, float]) -> tuple[float, float]:
         """Normalised scales this hypothesis allows, intersected with the configured bounds.
 
@@ -216,6 +235,17 @@ def hypothesis_tensor(src: PreparedCloud, tgt: PreparedCloud, hypothesis: Overla
                              cfg.tensor.knn, cfg.tensor.sigma, eps=cfg.tensor.knn_eps, size_filter=size_filter)
 
 
+def _run_hypothesis(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float],
+                    cfg: EngineConfig, rng: np.random.Generator, timer: StageTimer) -> Candidate | None:
+    """The tensor and the outer loop of one overlap hypothesis (``None`` when nothing was found)."""
+    t = time.perf_counter()
+    H3 = hypothesis_tensor(src, tgt, hypothesis, prior, cfg, rng)
+    timer.add("tensor", t)
+    if len(H3.values) < 3:
+        return None
+    return outer_loop(src, tgt, H3, hypothesis.overlap, cfg, rng, prior, timer)
+
+
 def settled(best: Candidate, candidates: list[Candidate], src: PreparedCloud, cfg: EngineConfig) -> bool:
     """The search can stop early when independent overlap hypotheses already ended at the same,
     well-supported transform (``outer.settle_support`` of them, agreement at least
@@ -235,19 +265,25 @@ def settled(best: Candidate, candidates: list[Candidate], src: PreparedCloud, cf
 def search(src: PreparedCloud, tgt: PreparedCloud, plan: list[OverlapHypothesis], rngs: list[np.random.Generator],
            bounds_n: tuple[float, float], cfg: EngineConfig, timer: StageTimer) -> list[Candidate]:
     """Run the overlap hypotheses of ``plan`` in order (one generator each) and return the candidate
-    transform of each that found one; stops early once the answer is settled (:func:`settled`)."""
+    transform of each that found one; stops early once the answer is settled (:func:`settled`).
+
+    A hypothesis whose *target* is the part runs with the clouds swapped (target -> source, then
+    inverted): the part always takes the role of the source, whose few triangles all lie inside
+    the overlap, while the whole gets the many local triangles. Run the other way round, only the
+    few source triangles that happen to fall inside the part could match.
+    """
     best: Candidate | None = None
     candidates: list[Candidate] = []
     for hypothesis, rng in zip(plan, rngs):
         prior = hypothesis.scale_prior(bounds_n)
         if prior[0] >= prior[1]:
             continue
-        t = time.perf_counter()
-        H3 = hypothesis_tensor(src, tgt, hypothesis, prior, cfg, rng)
-        timer.add("tensor", t)
-        if len(H3.values) < 3:
-            continue
-        cand = outer_loop(src, tgt, H3, hypothesis.overlap, cfg, rng, prior, timer)
+        if hypothesis.target_is_part:
+            found = _run_hypothesis(tgt, src, hypothesis.swapped(),
+                                    (1.0 / prior[1], 1.0 / prior[0]), cfg, rng, timer)
+            cand = found.reversed() if found is not None else None
+        else:
+            cand = _run_hypothesis(src, tgt, hypothesis, prior, cfg, rng, timer)
         if cand is None:
             continue
         log.debug("%s: agreement source %.3f target %.3f, %d inliers", hypothesis.name, cand.agreement.source,
