@@ -40,10 +40,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gctr_cli.config import EngineConfig, config_from_dict, load_config
-from gctr_cli.engine.descriptor import triangle_descriptors, with_ambiguous_permutations
 from gctr_cli.engine.prepare import PreparedCloud, StageTimer, prepare_cloud
 from gctr_cli.engine.preprocess import normalise
-from gctr_cli.engine.search import SCALE_FILTER_SLACK, OverlapHypothesis, _local_triangles, _perimeters, search_plan
+from gctr_cli.engine.search import OverlapHypothesis, hypothesis_triangles, oriented, search_plan
 from gctr_cli.engine.tensor import build_third_order, decode
 from gctr_cli.io import load_point_cloud
 
@@ -65,36 +64,17 @@ class HypothesisSignal:
     median_rank: float
 
 
-def normalised_truth(T_gt: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """The ground truth in the engine's normalised coordinates (normalised source -> normalised target)."""
-    ns, nt = normalise(source), normalise(target)
-
-    def to_unit(centre: np.ndarray, size: float) -> np.ndarray:
-        M = np.eye(4)
-        M[:3, :3] /= size
-        M[:3, 3] = -centre / size
-        return M
-
-    return to_unit(nt.centre, nt.size) @ T_gt @ np.linalg.inv(to_unit(ns.centre, ns.size))
-
-
 def hypothesis_signal(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, T_n: np.ndarray,
-                      bounds_n: tuple[float, float], cfg: EngineConfig, rng: np.random.Generator,
+                      prior: tuple[float, float], cfg: EngineConfig, rng: np.random.Generator,
                       tolerance: float) -> HypothesisSignal:
-    """Draw one hypothesis' triangles and tensor as the engine does and count the true signal in it."""
-    tri, w = cfg.triplets, cfg.tensor.normal_weight
+    """Draw one hypothesis' triangles and tensor as the engine does and count the true signal in it.
+    ``src``, ``tgt``, ``hypothesis``, ``prior`` and ``T_n`` are in the order the search runs them
+    (:func:`gctr_cli.engine.search.oriented`)."""
     S, Q = src.salient, tgt.salient
-    src_tri = _local_triangles(S, hypothesis.region_src, tri.n_source, cfg, rng)
-    tgt_tri = with_ambiguous_permutations(Q, _local_triangles(Q, hypothesis.region_tgt, tri.n_target, cfg, rng))
-    f_src = triangle_descriptors(S, src.salient_normals, src_tri, w)
-    f_tgt = triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w)
-    prior = hypothesis.scale_prior(bounds_n)
-    size_filter = None
-    if cfg.tensor.scale_filter:
-        size_filter = (_perimeters(S, src_tri), _perimeters(Q, tgt_tri), prior[0] / SCALE_FILTER_SLACK,
-                       prior[1] * SCALE_FILTER_SLACK)
+    m = hypothesis_triangles(src, tgt, hypothesis, prior, cfg, rng)
+    src_tri, tgt_tri, f_src, f_tgt = m.src_tri, m.tgt_tri, m.f_src, m.f_tgt
     H = build_third_order(len(S), src_tri, f_src, len(Q), tgt_tri, f_tgt, cfg.tensor.knn, cfg.tensor.sigma,
-                          eps=cfg.tensor.knn_eps, size_filter=size_filter)
+                          eps=cfg.tensor.knn_eps, size_filter=m.size_filter)
 
     moved = S @ T_n[:3, :3].T + T_n[:3, 3]
     partner = np.linalg.norm(moved[:, None] - Q[None], axis=2) < tolerance  # (n1, n2) true assignments
@@ -136,15 +116,15 @@ def pair_signal(source: np.ndarray, target: np.ndarray, T_gt: np.ndarray, cfg: E
     tgt = prepare_cloud(nt.points, cfg, rng_tgt, timer)
     ratio = ns.size / nt.size
     bounds_n = (cfg.scale_bounds[0] * ratio, cfg.scale_bounds[1] * ratio)
-    T_n = normalised_truth(T_gt, source, target)
+    T_n = np.linalg.inv(nt.to_original()) @ T_gt @ ns.to_original()  # truth in normalised coordinates
     out = []
     for h, rng in zip(plan, rng_hyp):
-        if h.target_is_part:  # the engine runs these from the target to the source (search.search)
-            swapped_bounds = (1.0 / bounds_n[1], 1.0 / bounds_n[0])
-            out.append(hypothesis_signal(tgt, src, h.swapped(), np.linalg.inv(T_n), swapped_bounds, cfg, rng,
-                                         tolerance))
-        else:
-            out.append(hypothesis_signal(src, tgt, h, T_n, bounds_n, cfg, rng, tolerance))
+        prior = h.scale_prior(bounds_n)
+        if prior[0] >= prior[1]:
+            continue
+        a, b, run_as, run_prior, swapped = oriented(src, tgt, h, prior)
+        truth = np.linalg.inv(T_n) if swapped else T_n
+        out.append(hypothesis_signal(a, b, run_as, truth, run_prior, cfg, rng, tolerance))
     return out
 
 

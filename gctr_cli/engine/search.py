@@ -217,11 +217,22 @@ def _perimeters(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.linalg.norm(a - b, axis=1) + np.linalg.norm(b - c, axis=1) + np.linalg.norm(c - a, axis=1)
 
 
-def hypothesis_tensor(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float],
-                  cfg: EngineConfig, rng: np.random.Generator) -> SparseTensor3:
-    """Third-order tensor of one overlap hypothesis: its own local triangles on both sides, matched
-    in descriptor space; matches whose perimeter ratio (the scale they imply) the prior rules out
-    are dropped before the power iteration."""
+@dataclass(frozen=True)
+class TriangleMatchInput:
+    """What the third-order tensor of one hypothesis is built from: both sides' triangles (vertex
+    indices in canonical order), their descriptors, and the perimeter-ratio scale filter."""
+
+    src_tri: np.ndarray
+    tgt_tri: np.ndarray
+    f_src: np.ndarray
+    f_tgt: np.ndarray
+    size_filter: tuple[np.ndarray, np.ndarray, float, float] | None
+
+
+def hypothesis_triangles(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis,
+                         prior: tuple[float, float], cfg: EngineConfig, rng: np.random.Generator) -> TriangleMatchInput:
+    """One hypothesis' local triangles on both sides and their descriptors; the scale filter keeps
+    matches whose perimeter ratio (the scale they imply) the prior allows."""
     tri, w = cfg.triplets, cfg.tensor.normal_weight
     S, Q = src.salient, tgt.salient
     src_tri = _local_triangles(S, hypothesis.region_src, tri.n_source, cfg, rng)
@@ -230,9 +241,28 @@ def hypothesis_tensor(src: PreparedCloud, tgt: PreparedCloud, hypothesis: Overla
     if cfg.tensor.scale_filter:
         size_filter = (_perimeters(S, src_tri), _perimeters(Q, tgt_tri), prior[0] / SCALE_FILTER_SLACK,
                        prior[1] * SCALE_FILTER_SLACK)
-    return build_third_order(len(S), src_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
-                             len(Q), tgt_tri, triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w),
-                             cfg.tensor.knn, cfg.tensor.sigma, eps=cfg.tensor.knn_eps, size_filter=size_filter)
+    return TriangleMatchInput(src_tri, tgt_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
+                              triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w), size_filter)
+
+
+def hypothesis_tensor(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float],
+                      cfg: EngineConfig, rng: np.random.Generator) -> SparseTensor3:
+    """Third-order tensor of one overlap hypothesis: its own local triangles on both sides
+    (:func:`hypothesis_triangles`), matched in descriptor space; matches the prior rules out are
+    dropped before the power iteration."""
+    m = hypothesis_triangles(src, tgt, hypothesis, prior, cfg, rng)
+    return build_third_order(len(src.salient), m.src_tri, m.f_src, len(tgt.salient), m.tgt_tri, m.f_tgt,
+                             cfg.tensor.knn, cfg.tensor.sigma, eps=cfg.tensor.knn_eps, size_filter=m.size_filter)
+
+
+def oriented(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float]
+             ) -> tuple[PreparedCloud, PreparedCloud, OverlapHypothesis, tuple[float, float], bool]:
+    """The clouds, hypothesis and scale prior in the order the search runs them: a hypothesis whose
+    target is the part runs from the target to the source (the last value says so; its result is
+    then inverted)."""
+    if hypothesis.target_is_part:
+        return tgt, src, hypothesis.swapped(), (1.0 / prior[1], 1.0 / prior[0]), True
+    return src, tgt, hypothesis, prior, False
 
 
 def _run_hypothesis(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float],
@@ -278,12 +308,10 @@ def search(src: PreparedCloud, tgt: PreparedCloud, plan: list[OverlapHypothesis]
         prior = hypothesis.scale_prior(bounds_n)
         if prior[0] >= prior[1]:
             continue
-        if hypothesis.target_is_part:
-            found = _run_hypothesis(tgt, src, hypothesis.swapped(),
-                                    (1.0 / prior[1], 1.0 / prior[0]), cfg, rng, timer)
-            cand = found.reversed() if found is not None else None
-        else:
-            cand = _run_hypothesis(src, tgt, hypothesis, prior, cfg, rng, timer)
+        a, b, run_as, run_prior, swapped = oriented(src, tgt, hypothesis, prior)
+        cand = _run_hypothesis(a, b, run_as, run_prior, cfg, rng, timer)
+        if cand is not None and swapped:
+            cand = cand.reversed()
         if cand is None:
             continue
         log.debug("%s: agreement source %.3f target %.3f, %d inliers", hypothesis.name, cand.agreement.source,
