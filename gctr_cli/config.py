@@ -108,6 +108,9 @@ class RefineConfig(_Strict):
 
     enabled: bool = True
     method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
+    symmetric: bool = Field(
+        True, description="point-to-plane also matches the target back onto the source (two-way; one-way ICP "
+                          "shrinks the moving cloud on noisy data)")
     iterations: int = Field(15, ge=1, le=500)
     start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / robust diameter")
     end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")

@@ -69,10 +69,24 @@ def _small_similarity(x: np.ndarray) -> np.ndarray:
     return to_matrix(float(np.exp(ds)), R, t)
 
 
+def _plane_matches(p: np.ndarray, p_normals: np.ndarray | None, other_normals: np.ndarray, tree: cKDTree,
+                   tau: float, min_cos: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (into ``p``, into the tree's points) of each point's nearest partner within ``tau``;
+    with ``p_normals``, only partners whose normals lie within the angle of ``min_cos``."""
+    d, j = tree.query(p, distance_upper_bound=tau)
+    keep = np.isfinite(d)
+    if p_normals is not None and min_cos > 0:
+        cos = np.abs(np.einsum("ij,ij->i", p_normals[keep], other_normals[j[keep]]))
+        keep[np.flatnonzero(keep)[cos < min_cos]] = False
+    i = np.flatnonzero(keep)
+    return i, j[i]
+
+
 def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T0: np.ndarray,
                               iterations: int, start: float, end: float, scale_bounds: tuple[float, float],
                               tgt_tree: cKDTree | None = None, src_normals: np.ndarray | None = None,
-                              max_normal_angle_deg: float = 90.0) -> tuple[np.ndarray, int]:
+                              max_normal_angle_deg: float = 90.0, src_tree: cKDTree | None = None,
+                              symmetric: bool = False) -> tuple[np.ndarray, int]:
     """Scaled point-to-plane ICP, linearised Gauss-Newton with trimming and Huber weights.
 
     Minimises ``sum w_i ((s R p_i + t - q_i) . n_i)^2`` over matches closer than a trimming
@@ -81,30 +95,47 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
     of differently sampled, noisy surfaces shows. With ``src_normals``, matches whose normals differ
     by more than ``max_normal_angle_deg`` are dropped: outlier points have random normals, and
     uniform outliers inside the target's volume otherwise pull the scale inwards.
+
+    With ``symmetric`` (needs ``src_normals``), the target points are also matched back onto the moved
+    source (residuals along the source normals), each direction weighted by its number of matches: on
+    noisy clouds one-way ICP shrinks the moving cloud by 1-10% (measured from the true pose on
+    the benchmark's part pairs; without noise it does not), and matching the other way shrinks the
+    other cloud by about as much, so the two biases cancel.
     """
     min_cos = float(np.cos(np.radians(max_normal_angle_deg)))
     tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
     T = T0.copy()
     taus = np.geomspace(start, end, max(iterations, 1))
     it = 0
+    symmetric = symmetric and src_normals is not None
+    s_tree = (src_tree if src_tree is not None else cKDTree(src)) if symmetric else None
     for it, tau in enumerate(taus, start=1):  # noqa: B007 (the count is returned)
-        p = apply(T, src)
-        d, j = tree.query(p, distance_upper_bound=tau)
-        keep = np.isfinite(d)
-        if src_normals is not None and min_cos > 0:
-            R = T[:3, :3] / np.cbrt(np.linalg.det(T[:3, :3]))
-            cos = np.abs(np.einsum("ij,ij->i", src_normals[keep] @ R.T, tgt_normals[j[keep]]))
-            keep[np.flatnonzero(keep)[cos < min_cos]] = False
-        if keep.sum() < 20:
+        A_lin = T[:3, :3]
+        s_cur = float(np.cbrt(np.linalg.det(A_lin)))
+        R = A_lin / s_cur
+        moved_normals = src_normals @ R.T if src_normals is not None else None
+        moved = apply(T, src)
+        i, j = _plane_matches(moved, moved_normals, tgt_normals, tree, tau, min_cos)
+        p, q, n = moved[i], tgt[j], tgt_normals[j]
+        weight = np.ones(len(p))
+        if s_tree is not None and src_normals is not None and moved_normals is not None:
+            # Back matches: each target point, pulled back into the source frame, to its nearest
+            # source point; residual (moved source point - target point) . moved source normal.
+            back = (tgt - T[:3, 3]) @ R / s_cur
+            ib, jb = _plane_matches(back, tgt_normals @ R, src_normals, s_tree, tau / s_cur, min_cos)
+            if len(ib):
+                weight = np.r_[np.full(len(p), 0.5 / max(len(p), 1)), np.full(len(ib), 0.5 / len(ib))]
+                weight *= len(weight)  # each direction weighs half, whatever its number of matches
+                p, q, n = np.vstack([p, moved[jb]]), np.vstack([q, tgt[ib]]), np.vstack([n, moved_normals[jb]])
+        if len(p) < 20:
             break
-        p, q, n = p[keep], tgt[j[keep]], tgt_normals[j[keep]]
         centre = p.mean(axis=0)  # linearise about the matched points' centroid (better conditioned)
         pc = p - centre
         r = np.einsum("ij,ij->i", p - q, n)
         # d(residual) / d(w, t, log s): [pc x n, n, pc . n]
         J = np.hstack([np.cross(pc, n), n, np.einsum("ij,ij->i", pc, n)[:, None]])
         huber = np.maximum(np.abs(r), 1e-12)
-        w = np.where(huber < tau / 3, 1.0, (tau / 3) / huber)
+        w = weight * np.where(huber < tau / 3, 1.0, (tau / 3) / huber)
         A = J.T @ (J * w[:, None])
         b = -J.T @ (w * r)
         try:
