@@ -192,6 +192,33 @@ def test_sample_triangles_constraints_and_determinism():
     assert not np.array_equal(tri, other)
 
 
+@pytest.mark.parametrize("max_edge", [np.inf, 1.4])
+def test_sample_triangles_returns_every_admissible_triangle_when_there_are_few(max_edge):
+    """Asked for more triangles than exist, the sampler returns all of them (enumerated, not drawn):
+    the same vertex sets as a brute-force check of every triple, and the same result for any seed."""
+    pts = np.random.default_rng(5).uniform(-1, 1, size=(40, 3))
+    min_edge, min_angle = 0.7, 15.0
+    tri = sample_triangles(pts, 100_000, min_edge, np.random.default_rng(0), min_angle_deg=min_angle,
+                           max_edge=max_edge)
+    brute = set()
+    for t in itertools.combinations(range(len(pts)), 3):
+        e = np.linalg.norm(pts[list(t)] - pts[[t[1], t[2], t[0]]], axis=1)
+        if e.min() < min_edge or e.max() > max_edge:
+            continue
+        angles = np.degrees(np.arccos(np.clip(inner_angle_cosines(pts, np.array([t]))[0], -1, 1)))
+        if angles.min() >= min_angle:
+            brute.add(t)
+    assert 50 < len(brute) < 100_000
+    assert {tuple(sorted(r)) for r in tri.tolist()} == brute and len(tri) == len(brute)
+    assert np.all(np.diff(inner_angle_cosines(pts, tri), axis=1) >= 0)  # canonical order
+    np.testing.assert_array_equal(tri, sample_triangles(pts, 100_000, min_edge, np.random.default_rng(9),
+                                                        min_angle_deg=min_angle, max_edge=max_edge))
+    # asked for fewer than exist (but not many fewer): a subset of them, seeded
+    few = sample_triangles(pts, len(brute) - 10, min_edge, np.random.default_rng(0), min_angle_deg=min_angle,
+                           max_edge=max_edge)
+    assert len(few) == len(brute) - 10 and {tuple(sorted(r)) for r in few.tolist()} <= brute
+
+
 def test_sample_triangles_impossible_constraints():
     pts = np.random.default_rng(4).uniform(0, 1, size=(30, 3))
     # no edge can be longer than the cube's diagonal

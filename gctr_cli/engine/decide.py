@@ -40,7 +40,8 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
         T_r, _ = scaled_point_to_plane_icp(src_ref.points, tgt_ref.points, tgt_ref.normals, T_n, r.iterations,
                                            r.start_ratio, r.end_ratio, bounds_n, tgt_ref.tree,
                                            src_normals=src_ref.normals, max_normal_angle_deg=v.max_normal_angle_deg,
-                                           src_tree=src_ref.tree, symmetric=r.symmetric)
+                                           src_tree=src_ref.tree, symmetric=r.symmetric,
+                                           max_matches=r.max_matches)
     else:
         T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
                                     bounds_n, tgt_ref.tree)

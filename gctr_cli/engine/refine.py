@@ -86,7 +86,7 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
                               iterations: int, start: float, end: float, scale_bounds: tuple[float, float],
                               tgt_tree: cKDTree | None = None, src_normals: np.ndarray | None = None,
                               max_normal_angle_deg: float = 90.0, src_tree: cKDTree | None = None,
-                              symmetric: bool = False) -> tuple[np.ndarray, int]:
+                              symmetric: bool = False, max_matches: int = 0) -> tuple[np.ndarray, int]:
     """Scaled point-to-plane ICP, linearised Gauss-Newton with trimming and Huber weights.
 
     Minimises ``sum w_i ((s R p_i + t - q_i) . n_i)^2`` over matches closer than a trimming
@@ -101,6 +101,10 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
     noisy clouds one-way ICP shrinks the moving cloud by 1-10% (measured from the true pose on
     the benchmark's part pairs; without noise it does not), and matching the other way shrinks the
     other cloud by about as much, so the two biases cancel.
+
+    ``max_matches`` > 0 moves only an evenly strided subset of at most that many points of each cloud
+    (their partners are still looked up among all points): seven parameters need far fewer matches
+    than a working cloud has, and the neighbour queries are the cost of every iteration.
     """
     min_cos = float(np.cos(np.radians(max_normal_angle_deg)))
     tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
@@ -109,6 +113,15 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
     it = 0
     symmetric = symmetric and src_normals is not None
     s_tree = (src_tree if src_tree is not None else cKDTree(src)) if symmetric else None
+    src_all, src_normals_all = src, src_normals
+    if max_matches > 0 and len(src) > max_matches:
+        step = -(-len(src) // max_matches)
+        src = src[::step]
+        src_normals = src_normals[::step] if src_normals is not None else None
+    tgt_back, tgt_back_normals = tgt, tgt_normals
+    if max_matches > 0 and len(tgt) > max_matches:
+        step = -(-len(tgt) // max_matches)
+        tgt_back, tgt_back_normals = tgt[::step], tgt_normals[::step]
     for it, tau in enumerate(taus, start=1):  # noqa: B007 (the count is returned)
         A_lin = T[:3, :3]
         s_cur = float(np.cbrt(np.linalg.det(A_lin)))
@@ -121,12 +134,14 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
         if s_tree is not None and src_normals is not None and moved_normals is not None:
             # Back matches: each target point, pulled back into the source frame, to its nearest
             # source point; residual (moved source point - target point) . moved source normal.
-            back = (tgt - T[:3, 3]) @ R / s_cur
-            ib, jb = _plane_matches(back, tgt_normals @ R, src_normals, s_tree, tau / s_cur, min_cos)
+            back = (tgt_back - T[:3, 3]) @ R / s_cur
+            ib, jb = _plane_matches(back, tgt_back_normals @ R, src_normals_all, s_tree, tau / s_cur, min_cos)
             if len(ib):
                 weight = np.r_[np.full(len(p), 0.5 / max(len(p), 1)), np.full(len(ib), 0.5 / len(ib))]
                 weight *= len(weight)  # each direction weighs half, whatever its number of matches
-                p, q, n = np.vstack([p, moved[jb]]), np.vstack([q, tgt[ib]]), np.vstack([n, moved_normals[jb]])
+                p = np.vstack([p, apply(T, src_all[jb])])
+                q = np.vstack([q, tgt_back[ib]])
+                n = np.vstack([n, src_normals_all[jb] @ R.T])
         if len(p) < 20:
             break
         centre = p.mean(axis=0)  # linearise about the matched points' centroid (better conditioned)

@@ -12,6 +12,31 @@ import numpy as np
 
 #: up to this many points, already drawn vertex sets are marked in a table of m^3 booleans
 _SEEN_TABLE_MAX_POINTS = 256
+#: enumerate all admissible triangles (instead of drawing) when there are at most this many times n
+_ENUMERATE_FACTOR = 2.0
+
+
+def _canonical(tri: np.ndarray, sq: np.ndarray, max_cos: float) -> np.ndarray:
+    """The triangles (index triples) with no inner angle below the limit, vertices in canonical order
+    (ascending cosine: largest angle first)."""
+    i, j, k = tri[:, 0], tri[:, 1], tri[:, 2]
+    a2, b2, c2 = sq[j, k], sq[k, i], sq[i, j]  # squared edges opposite vertices i, j, k
+    cos = np.stack([(b2 + c2 - a2) / (2 * np.sqrt(b2 * c2)), (a2 + c2 - b2) / (2 * np.sqrt(a2 * c2)),
+                    (a2 + b2 - c2) / (2 * np.sqrt(a2 * b2))], axis=1)
+    ok = np.all(cos <= max_cos, axis=1)
+    return np.take_along_axis(tri[ok], np.argsort(cos[ok], axis=1, kind="stable"), axis=1)
+
+
+def _enumerate_triangles(near: np.ndarray, sq: np.ndarray, max_cos: float) -> np.ndarray:
+    """Every triangle whose three edges are admissible (``near``) and whose angles are wide enough,
+    canonical vertex order, sorted by vertex set (deterministic)."""
+    i, j = np.nonzero(np.triu(near, 1))  # edges i < j, in row-major order
+    common = near[i] & near[j]  # (edges, m): the third vertices admissible from both ends
+    common &= np.arange(near.shape[0])[None, :] > j[:, None]  # k > j: each vertex set once
+    e, k = np.nonzero(common)
+    if len(e) == 0:
+        return np.empty((0, 3), dtype=np.int64)
+    return _canonical(np.stack([i[e], j[e], k], axis=1).astype(np.int64), sq, max_cos)
 
 
 def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random.Generator,
@@ -39,6 +64,16 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
     anchors = np.flatnonzero(n_near >= 2)
     if len(anchors) == 0:
         return np.empty((0, 3), dtype=np.int64)
+    # When the admissible triangles (three admissible edges: the triangles of the graph ``near``) are
+    # few — local triangles of a small overlap region — drawing would spend all ``max_rounds``
+    # re-finding the same ones: enumerate them instead (trace(A^3) / 6 counts them).
+    adj = near.astype(np.float64)
+    n_admissible = float(np.einsum("ij,ji->", adj @ adj, adj)) / 6.0
+    if n_admissible <= _ENUMERATE_FACTOR * n:
+        tri = _enumerate_triangles(near, sq, max_cos)
+        if len(tri) > n:
+            tri = tri[np.sort(rng.choice(len(tri), n, replace=False))]
+        return tri
     # Each draw is kept only the first time its vertex set comes up (seeded, deterministic); a
     # table over all vertex triples (m^3 booleans, allocated lazily) marks what is already kept.
     seen = np.zeros(m * m * m, dtype=bool) if m <= _SEEN_TABLE_MAX_POINTS else None
@@ -50,15 +85,9 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
         i = anchors[rng.integers(0, len(anchors), size=batch)]
         j = near_first[i, (rng.random(batch) * n_near[i]).astype(np.int64)]
         k = near_first[i, (rng.random(batch) * n_near[i]).astype(np.int64)]
-        a2, b2, c2 = sq[j, k], sq[k, i], sq[i, j]  # squared edges opposite vertices i, j, k
+        a2 = sq[j, k]
         ok = (a2 >= min_sq) & (a2 <= max_sq) & (a2 > 0)  # i-j and i-k are admissible by construction
-        i, j, k, a2, b2, c2 = i[ok], j[ok], k[ok], a2[ok], b2[ok], c2[ok]
-        cos = np.stack([(b2 + c2 - a2) / (2 * np.sqrt(b2 * c2)), (a2 + c2 - b2) / (2 * np.sqrt(a2 * c2)),
-                        (a2 + b2 - c2) / (2 * np.sqrt(a2 * b2))], axis=1)
-        ok = np.all(cos <= max_cos, axis=1)
-        tri = np.stack([i[ok], j[ok], k[ok]], axis=1)
-        # canonical vertex order (ascending cosine: largest angle first), from the cosines at hand
-        tri = np.take_along_axis(tri, np.argsort(cos[ok], axis=1, kind="stable"), axis=1)
+        tri = _canonical(np.stack([i[ok], j[ok], k[ok]], axis=1), sq, max_cos)
         srt = np.sort(tri, axis=1).astype(np.int64)
         key = (srt[:, 0] * m + srt[:, 1]) * m + srt[:, 2]
         _, first = np.unique(key, return_index=True)
