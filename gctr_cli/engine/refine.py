@@ -111,17 +111,16 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
     T = T0.copy()
     taus = np.geomspace(start, end, max(iterations, 1))
     it = 0
-    symmetric = symmetric and src_normals is not None
-    s_tree = (src_tree if src_tree is not None else cKDTree(src)) if symmetric else None
     src_all, src_normals_all = src, src_normals
-    if max_matches > 0 and len(src) > max_matches:
-        step = -(-len(src) // max_matches)
-        src = src[::step]
-        src_normals = src_normals[::step] if src_normals is not None else None
+    if 0 < max_matches < len(src):
+        stride = -(-len(src) // max_matches)
+        src, src_normals = src[::stride], (src_normals[::stride] if src_normals is not None else None)
+    s_tree: cKDTree | None = None
     tgt_back, tgt_back_normals = tgt, tgt_normals
-    if max_matches > 0 and len(tgt) > max_matches:
-        step = -(-len(tgt) // max_matches)
-        tgt_back, tgt_back_normals = tgt[::step], tgt_normals[::step]
+    if symmetric and src_normals_all is not None:
+        s_tree = src_tree if src_tree is not None else cKDTree(src_all)
+        stride = -(-len(tgt) // max_matches) if 0 < max_matches < len(tgt) else 1
+        tgt_back, tgt_back_normals = tgt[::stride], tgt_normals[::stride]
     for it, tau in enumerate(taus, start=1):  # noqa: B007 (the count is returned)
         A_lin = T[:3, :3]
         s_cur = float(np.cbrt(np.linalg.det(A_lin)))
@@ -131,7 +130,7 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
         i, j = _plane_matches(moved, moved_normals, tgt_normals, tree, tau, min_cos)
         p, q, n = moved[i], tgt[j], tgt_normals[j]
         weight = np.ones(len(p))
-        if s_tree is not None and src_normals is not None and moved_normals is not None:
+        if s_tree is not None and src_normals_all is not None:
             # Back matches: each target point, pulled back into the source frame, to its nearest
             # source point; residual (moved source point - target point) . moved source normal.
             back = (tgt_back - T[:3, 3]) @ R / s_cur
