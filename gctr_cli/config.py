@@ -164,7 +164,7 @@ class EngineConfig(_Strict):
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(
-        0.3, ge=0, le=1,
+        0.35, ge=0, le=1,
         description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")
