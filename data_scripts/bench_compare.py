@@ -73,7 +73,6 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 
 from data_scripts.common import (  # noqa: E402
-    CONFIDENCE_THRESHOLDS,
     DIAGNOSIS_MARGIN,
     confidence_sweep,
     diagnose,
@@ -83,6 +82,7 @@ from data_scripts.common import (  # noqa: E402
     outcome_table,
     plot_confidence_tradeoff,
     sweep_table,
+    sweep_thresholds,
     usable_transform,
 )
 from gctr_cli.methods import METHODS as REGISTERED_METHODS  # noqa: E402
@@ -948,7 +948,8 @@ def render_verdicts(rows, methods, levels, configured: float | None) -> list[str
         f"{m} {silent[m]} of {total[m]} pairs ({100.0 * silent[m] / max(1, total[m]):.1f}%)"
         for m in methods) + ".")
     L.append("")
-    sweeps = {m: confidence_sweep([r for r in rows if r["method"] == m], CONFIDENCE_THRESHOLDS) for m in methods}
+    thresholds = sweep_thresholds(configured)
+    sweeps = {m: confidence_sweep([r for r in rows if r["method"] == m], thresholds) for m in methods}
     no_conf = [m for m in methods if all(math.isnan(r.get("confidence", math.nan)) for r in rows if r["method"] == m)]
     unknown = sum(1 for r in rows if r["status"] != "ok" and r.get("would_succeed") is None)
     L += ["## Confidence threshold trade-off", "",

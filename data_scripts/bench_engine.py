@@ -76,7 +76,6 @@ from pathlib import Path
 from typing import Any
 
 from data_scripts.common import (
-    CONFIDENCE_THRESHOLDS,
     DIAGNOSIS_MARGIN,
     confidence_sweep,
     diagnose,
@@ -86,6 +85,7 @@ from data_scripts.common import (
     outcome_table,
     plot_confidence_tradeoff,
     sweep_table,
+    sweep_thresholds,
     usable_transform,
 )
 from gctr_cli.batch import flatten_dict
@@ -734,7 +734,7 @@ def render_verdicts(rows: list[dict[str, Any]], levels: list[str], info: dict[st
     out += ["", f"Silent wrong over all levels: **{silent} of {n_all} pairs "
             f"({100.0 * silent / n_all if n_all else 0:.1f}%)**.", ""]
 
-    sweep = confidence_sweep(rows, CONFIDENCE_THRESHOLDS)
+    sweep = confidence_sweep(rows, sweep_thresholds(configured))
     confs = [r["confidence"] for r in rows if isinstance(r.get("confidence"), float)]
     has_conf = any(not math.isnan(c) for c in confs)
     out += ["### Confidence threshold trade-off", "",

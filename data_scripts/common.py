@@ -158,6 +158,12 @@ def machine_info() -> dict[str, str]:
 OUTCOMES = ("success", "silent_wrong", "failed")
 OUTCOME_LABELS = {"success": "success", "silent_wrong": "silent wrong", "failed": "honest failure"}
 CONFIDENCE_THRESHOLDS = tuple(i / 10 for i in range(10))
+
+
+def sweep_thresholds(configured: float | None) -> tuple[float, ...]:
+    """The sweep's thresholds: the 0.1 grid plus the configured threshold (so its row is in the table)."""
+    extra = {round(float(configured), 6)} if isinstance(configured, (int, float)) else set()
+    return tuple(sorted(set(CONFIDENCE_THRESHOLDS) | extra))
 #: failure diagnostics: engine scores (in [0, 1]) of the truth and of the answer closer than this are "equal"
 DIAGNOSIS_MARGIN = 0.02
 DIAGNOSES = ("search missed", "objective can't tell", "precision")

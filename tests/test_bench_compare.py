@@ -202,6 +202,15 @@ def test_sweep_table_marks_configured_threshold():
     assert len(table) == 12
 
 
+def test_sweep_includes_a_configured_threshold_off_the_grid():
+    assert common.sweep_thresholds(0.35) == (0.0, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+    assert common.sweep_thresholds(0.3) == common.CONFIDENCE_THRESHOLDS
+    assert common.sweep_thresholds(None) == common.CONFIDENCE_THRESHOLDS
+    sweeps = {"gctr": common.confidence_sweep(_verdict_rows(), common.sweep_thresholds(0.35))}
+    table = common.sweep_table(sweeps, configured=0.35)
+    assert len(table) == 13 and table[6].startswith("| 0.35 (configured) |")
+
+
 def test_diagnose_and_diagnosis_table():
     assert common.diagnose(0.80, 0.50) == "search missed"
     assert common.diagnose(0.50, 0.80) == "objective can't tell"
