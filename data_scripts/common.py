@@ -162,8 +162,12 @@ CONFIDENCE_THRESHOLDS = tuple(i / 10 for i in range(10))
 
 def sweep_thresholds(configured: float | None) -> tuple[float, ...]:
     """The sweep's thresholds: the 0.1 grid plus the configured threshold (so its row is in the table)."""
-    extra = {round(float(configured), 6)} if isinstance(configured, (int, float)) else set()
-    return tuple(sorted(set(CONFIDENCE_THRESHOLDS) | extra))
+    grid = tuple(CONFIDENCE_THRESHOLDS)
+    if isinstance(configured, bool) or not isinstance(configured, (int, float)):
+        return grid
+    if any(abs(float(configured) - t) < 1e-9 for t in grid):
+        return grid
+    return tuple(sorted((*grid, float(configured))))
 #: failure diagnostics: engine scores (in [0, 1]) of the truth and of the answer closer than this are "equal"
 DIAGNOSIS_MARGIN = 0.02
 DIAGNOSES = ("search missed", "objective can't tell", "precision")

@@ -109,11 +109,12 @@ class RefineConfig(_Strict):
     enabled: bool = True
     method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
     symmetric: bool = Field(
-        True, description="point-to-plane also matches the target back onto the source (two-way; one-way ICP "
+        True, description="point_to_plane also matches the target back onto the source (two-way; one-way ICP "
                           "shrinks the moving cloud on noisy data)")
     iterations: int = Field(15, ge=1, le=500)
     max_matches: int = Field(
-        2000, ge=0, description="points of each cloud moved and matched per iteration (evenly strided); 0 = all")
+        2000, ge=0, description="point_to_plane: points of each cloud moved and matched per iteration (every k-th); "
+                                "0 = all")
     start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / robust diameter")
     end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")
     voxel_ratio: float = Field(

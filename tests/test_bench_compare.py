@@ -206,6 +206,8 @@ def test_sweep_includes_a_configured_threshold_off_the_grid():
     assert common.sweep_thresholds(0.35) == (0.0, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
     assert common.sweep_thresholds(0.3) == common.CONFIDENCE_THRESHOLDS
     assert common.sweep_thresholds(None) == common.CONFIDENCE_THRESHOLDS
+    assert common.sweep_thresholds(True) == common.CONFIDENCE_THRESHOLDS  # not a threshold
+    assert 0.1234567 in common.sweep_thresholds(0.1234567)  # kept exactly, so its row is marked
     sweeps = {"gctr": common.confidence_sweep(_verdict_rows(), common.sweep_thresholds(0.35))}
     table = common.sweep_table(sweeps, configured=0.35)
     assert len(table) == 13 and table[6].startswith("| 0.35 (configured) |")

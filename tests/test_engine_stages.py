@@ -217,6 +217,12 @@ def test_sample_triangles_returns_every_admissible_triangle_when_there_are_few(m
     few = sample_triangles(pts, len(brute) - 10, min_edge, np.random.default_rng(0), min_angle_deg=min_angle,
                            max_edge=max_edge)
     assert len(few) == len(brute) - 10 and {tuple(sorted(r)) for r in few.tolist()} <= brute
+    again = sample_triangles(pts, len(brute) - 10, min_edge, np.random.default_rng(0), min_angle_deg=min_angle,
+                             max_edge=max_edge)
+    other = sample_triangles(pts, len(brute) - 10, min_edge, np.random.default_rng(1), min_angle_deg=min_angle,
+                             max_edge=max_edge)
+    np.testing.assert_array_equal(few, again)
+    assert {tuple(r) for r in few.tolist()} != {tuple(r) for r in other.tolist()}
 
 
 def test_sample_triangles_impossible_constraints():
@@ -655,15 +661,22 @@ def test_symmetric_point_to_plane_icp_cancels_the_noise_shrink_of_the_moving_clo
     src = prepare_cloud(ns.points, cfg, rng_s, StageTimer({}))
     tgt = prepare_cloud(nt.points, cfg, rng_t, StageTimer({}))
     T_true = np.linalg.inv(nt.to_original()) @ pair.T_gt @ ns.to_original()
+    def icp(symmetric: bool, max_matches: int = 0, normals: bool = True) -> np.ndarray:
+        return scaled_point_to_plane_icp(src.points, tgt.points, tgt.normals, T_true, 15, 0.08, 0.02, (0.01, 100.0),
+                                         tgt.tree, src_normals=src.normals if normals else None,
+                                         max_normal_angle_deg=30.0, src_tree=src.tree, symmetric=symmetric,
+                                         max_matches=max_matches)[0]
+
     drift = {}
-    for symmetric in (False, True):
-        T, _ = scaled_point_to_plane_icp(src.points, tgt.points, tgt.normals, T_true, 15, 0.08, 0.02, (0.01, 100.0),
-                                         tgt.tree, src_normals=src.normals, max_normal_angle_deg=30.0,
-                                         src_tree=src.tree, symmetric=symmetric)
-        drift[symmetric] = split(T)[0] / split(T_true)[0] - 1
+    for symmetric, max_matches in ((False, 0), (True, 0), (False, 2000), (True, 2000)):
+        T = icp(symmetric, max_matches)
+        drift[symmetric, max_matches] = split(T)[0] / split(T_true)[0] - 1
         assert transform_errors(T, T_true, 1.0).rot_err_deg < 2.0
-    assert drift[False] < -0.015, drift  # one way: the patch shrinks (measured -2.6%)
-    assert abs(drift[True]) < 0.01, drift  # both ways: measured +0.5%
+    assert drift[False, 0] < -0.015 and drift[False, 2000] < -0.015, drift  # one way: the patch shrinks (-2.6%)
+    assert abs(drift[True, 0]) < 0.01 and abs(drift[True, 2000]) < 0.01, drift  # both ways: +0.5%
+    # a subsample at least as large as the clouds is no subsample; without source normals: one way
+    np.testing.assert_array_equal(icp(True, max(len(src.points), len(tgt.points))), icp(True, 0))
+    np.testing.assert_array_equal(icp(True, 0, normals=False), icp(False, 0, normals=False))
 
 
 # ------------------------------------------------------------------------------------ overlap plan

@@ -96,15 +96,16 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
     by more than ``max_normal_angle_deg`` are dropped: outlier points have random normals, and
     uniform outliers inside the target's volume otherwise pull the scale inwards.
 
-    With ``symmetric`` (needs ``src_normals``), the target points are also matched back onto the moved
-    source (residuals along the source normals), each direction weighted by its number of matches: on
-    noisy clouds one-way ICP shrinks the moving cloud by 1-10% (measured from the true pose on
-    the benchmark's part pairs; without noise it does not), and matching the other way shrinks the
-    other cloud by about as much, so the two biases cancel.
+    With ``symmetric``, the target points are also matched back onto the moved source (residuals along
+    the source normals, held fixed within an iteration); the two directions weigh half each, however
+    many matches each has (weights inversely proportional to the counts): on noisy clouds one-way ICP
+    shrinks the moving cloud by 1-20% (measured from the true pose on the benchmark's part pairs;
+    without noise it does not), and matching the other way shrinks the other cloud by about as much,
+    so the two biases cancel. Without ``src_normals`` the ICP is one-way whatever ``symmetric`` says.
 
-    ``max_matches`` > 0 moves only an evenly strided subset of at most that many points of each cloud
-    (their partners are still looked up among all points): seven parameters need far fewer matches
-    than a working cloud has, and the neighbour queries are the cost of every iteration.
+    ``max_matches`` > 0 moves only a subset of at most that many points of each cloud, every k-th by
+    index (their partners are still looked up among all points): seven parameters need far fewer
+    matches than a working cloud has, and the neighbour queries are the cost of every iteration.
     """
     min_cos = float(np.cos(np.radians(max_normal_angle_deg)))
     tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
