@@ -162,7 +162,7 @@ CONFIDENCE_THRESHOLDS = tuple(i / 10 for i in range(10))
 
 def sweep_thresholds(configured: float | None) -> tuple[float, ...]:
     """The sweep's thresholds: the 0.1 grid plus the configured threshold (so its row is in the table)."""
-    grid = tuple(CONFIDENCE_THRESHOLDS)
+    grid = CONFIDENCE_THRESHOLDS
     if isinstance(configured, bool) or not isinstance(configured, (int, float)):
         return grid
     if any(abs(float(configured) - t) < 1e-9 for t in grid):

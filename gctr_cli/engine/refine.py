@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gctr_cli.engine.similarity import umeyama
+from gctr_cli.engine.verdict import surface_matches
 from gctr_cli.geometry import apply, to_matrix
 
 
@@ -69,19 +70,6 @@ def _small_similarity(x: np.ndarray) -> np.ndarray:
     return to_matrix(float(np.exp(ds)), R, t)
 
 
-def _plane_matches(p: np.ndarray, p_normals: np.ndarray | None, other_normals: np.ndarray, tree: cKDTree,
-                   tau: float, min_cos: float) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (into ``p``, into the tree's points) of each point's nearest partner within ``tau``;
-    with ``p_normals``, only partners whose normals lie within the angle of ``min_cos``."""
-    d, j = tree.query(p, distance_upper_bound=tau)
-    keep = np.isfinite(d)
-    if p_normals is not None and min_cos > 0:
-        cos = np.abs(np.einsum("ij,ij->i", p_normals[keep], other_normals[j[keep]]))
-        keep[np.flatnonzero(keep)[cos < min_cos]] = False
-    i = np.flatnonzero(keep)
-    return i, j[i]
-
-
 def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, T0: np.ndarray,
                               iterations: int, start: float, end: float, scale_bounds: tuple[float, float],
                               tgt_tree: cKDTree | None = None, src_normals: np.ndarray | None = None,
@@ -128,14 +116,14 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
         R = A_lin / s_cur
         moved_normals = src_normals @ R.T if src_normals is not None else None
         moved = apply(T, src)
-        i, j = _plane_matches(moved, moved_normals, tgt_normals, tree, tau, min_cos)
+        i, j = surface_matches(moved, moved_normals, tgt_normals, tree, tau, min_cos)
         p, q, n = moved[i], tgt[j], tgt_normals[j]
         weight = np.ones(len(p))
         if s_tree is not None and src_normals_all is not None:
             # Back matches: each target point, pulled back into the source frame, to its nearest
             # source point; residual (moved source point - target point) . moved source normal.
             back = (tgt_back - T[:3, 3]) @ R / s_cur
-            ib, jb = _plane_matches(back, tgt_back_normals @ R, src_normals_all, s_tree, tau / s_cur, min_cos)
+            ib, jb = surface_matches(back, tgt_back_normals @ R, src_normals_all, s_tree, tau / s_cur, min_cos)
             if len(ib):
                 weight = np.r_[np.full(len(p), 0.5 / max(len(p), 1)), np.full(len(ib), 0.5 / len(ib))]
                 weight *= len(weight)  # each direction weighs half, whatever its number of matches

@@ -310,10 +310,10 @@ def search(src: PreparedCloud, tgt: PreparedCloud, plan: list[OverlapHypothesis]
             continue
         a, b, run_as, run_prior, swapped = oriented(src, tgt, hypothesis, prior)
         cand = _run_hypothesis(a, b, run_as, run_prior, cfg, rng, timer)
-        if cand is not None and swapped:
-            cand = cand.reversed()
         if cand is None:
             continue
+        if swapped:
+            cand = cand.reversed()
         log.debug("%s: agreement source %.3f target %.3f, %d inliers", hypothesis.name, cand.agreement.source,
                   cand.agreement.target, cand.n_inliers)
         candidates.append(cand)

@@ -59,11 +59,6 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
     # [min_edge, max_edge]): wide-baseline triangles are rare among uniform triples, so drawing
     # partners directly accepts most draws; with a finite ``max_edge`` the triangles are local.
     near = (sq <= max_sq) & (sq >= min_sq) & (sq > 0)
-    n_near = near.sum(axis=1)
-    near_first = np.argsort(~near, axis=1, kind="stable")  # row i: the admissible partners of i first
-    anchors = np.flatnonzero(n_near >= 2)
-    if len(anchors) == 0:
-        return np.empty((0, 3), dtype=np.int64)
     # When the admissible triangles (three admissible edges: the triangles of the graph ``near``) are
     # few — local triangles of a small overlap region — drawing would spend all ``max_rounds``
     # re-finding the same ones: enumerate them instead (trace(A^3) / 6 counts them).
@@ -74,6 +69,9 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
         if len(tri) > n:
             tri = tri[np.sort(rng.choice(len(tri), n, replace=False))]
         return tri
+    n_near = near.sum(axis=1)
+    near_first = np.argsort(~near, axis=1, kind="stable")  # row i: the admissible partners of i first
+    anchors = np.flatnonzero(n_near >= 2)
     # Each draw is kept only the first time its vertex set comes up (seeded, deterministic); a
     # table over all vertex triples (m^3 booleans, allocated lazily) marks what is already kept.
     seen = np.zeros(m * m * m, dtype=bool) if m <= _SEEN_TABLE_MAX_POINTS else None

@@ -54,14 +54,24 @@ class Agreement:
         return 0.5 * (self.source + self.target)
 
 
+def surface_matches(points: np.ndarray, normals: np.ndarray | None, other_normals: np.ndarray, tree: cKDTree,
+                    distance: float, min_cos: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (into ``points``, into the tree's points) of each point's nearest partner within
+    ``distance``; with ``normals``, only partners whose normal agrees (|cos| ≥ ``min_cos``; lines,
+    not directions, since PCA normals have no sign)."""
+    d, j = tree.query(points, distance_upper_bound=distance)
+    keep = np.isfinite(d)
+    if normals is not None and min_cos > 0:
+        cos = np.abs(np.einsum("ij,ij->i", normals[keep], other_normals[j[keep]]))
+        keep[np.flatnonzero(keep)[cos < min_cos]] = False
+    i = np.flatnonzero(keep)
+    return i, j[i]
+
+
 def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surface, distance: float,
                       min_cos: float) -> float:
-    d, j = other.tree.query(moved, distance_upper_bound=distance)
-    near = np.isfinite(d)
-    if not near.any():
-        return 0.0
-    cos = np.abs(np.einsum("ij,ij->i", moved_normals[near], other.normals[j[near]]))
-    return float(np.count_nonzero(cos >= min_cos)) / len(moved)
+    i, _ = surface_matches(moved, moved_normals, other.normals, other.tree, distance, min_cos)
+    return len(i) / len(moved)
 
 
 def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float,
