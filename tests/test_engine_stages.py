@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine.descriptor import (
     canonical_order,
+    described_with_permutations,
     inner_angle_cosines,
     triangle_descriptors,
     with_ambiguous_permutations,
@@ -162,6 +163,34 @@ def test_ambiguous_permutations_only_for_near_equal_angles():
     out = with_ambiguous_permutations(P, batch)
     assert len(out) == 5
     np.testing.assert_array_equal(out[:3], batch)
+
+
+@pytest.mark.parametrize("normal_weight", [0.0, 1.0])
+def test_one_pass_description_equals_the_separate_steps(normal_weight):
+    """The search's one-pass description (triangles with their ambiguous variants, descriptors, perimeters)
+    is bit for bit what the separate functions give: a variant's cosines are its triangle's, reordered."""
+    rng = np.random.default_rng(11)
+    P = rng.normal(size=(40, 3))
+    N = rng.normal(size=(40, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    tri = canonical_order(P, np.array([rng.choice(40, 3, replace=False) for _ in range(400)]))
+    # near-isoceles and near-equilateral triangles too, so that every kind of variant occurs
+    P = np.vstack([P, [[0, 0, 0], [2, 0, 0], [1, 3, 0], [5, 0, 0], [7, 0, 0], [6, np.sqrt(3.0), 0.01]]])
+    N = np.vstack([N, np.tile([0.0, 0.0, 1.0], (6, 1))])
+    tri = np.vstack([tri, canonical_order(P, np.array([[40, 41, 42], [43, 44, 45]]))])
+
+    out_tri, f, perimeter = described_with_permutations(P, N, tri, normal_weight)
+    expected = with_ambiguous_permutations(P, tri)
+    np.testing.assert_array_equal(out_tri, expected)
+    assert len(expected) > len(tri) + 6  # variants of random triangles as well as the two planted ones
+    np.testing.assert_array_equal(f, triangle_descriptors(P, N, expected, normal_weight))
+    a, b, c = P[expected[:, 0]], P[expected[:, 1]], P[expected[:, 2]]
+    np.testing.assert_array_equal(perimeter, np.linalg.norm(a - b, axis=1) + np.linalg.norm(b - c, axis=1)
+                                  + np.linalg.norm(c - a, axis=1))
+    # without variants: the triangles as given
+    t2, f2, _ = described_with_permutations(P, N, tri, normal_weight, permute=False)
+    np.testing.assert_array_equal(t2, tri)
+    np.testing.assert_array_equal(f2, triangle_descriptors(P, N, tri, normal_weight))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -716,3 +745,4 @@ def test_reversed_candidate_inverts_transforms_and_swaps_shares():
     assert (r.n_inliers, r.iterations, r.overlap) == (12, 2, 0.2025)
     back = r.reversed()
     assert np.allclose(back.transform, T, atol=1e-12) and back.agreement == c.agreement
+

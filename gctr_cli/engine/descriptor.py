@@ -16,17 +16,26 @@ from __future__ import annotations
 import numpy as np
 
 
+def _edges(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Edge vectors a->b, b->c, c->a of each triangle (a, b, c) and their lengths."""
+    p = points[triangles]  # (M, 3, 3)
+    ab, bc, ca = p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]
+    return ab, bc, ca, np.linalg.norm(ab, axis=1), np.linalg.norm(bc, axis=1), np.linalg.norm(ca, axis=1)
+
+
+def _cosines(ab: np.ndarray, bc: np.ndarray, ca: np.ndarray, l_ab: np.ndarray, l_bc: np.ndarray,
+             l_ca: np.ndarray) -> np.ndarray:
+    """Cosines of the inner angles at a, b, c from the edges (each angle between its two edges,
+    both pointing away from the vertex)."""
+    def cos(e1: np.ndarray, e2: np.ndarray, n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", e1, e2) / np.maximum(n1 * n2, 1e-300)
+
+    return np.stack([cos(ab, -ca, l_ab, l_ca), cos(bc, -ab, l_bc, l_ab), cos(ca, -bc, l_ca, l_bc)], axis=1)
+
+
 def inner_angle_cosines(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(M, 3) cosines of the inner angles at each vertex of each triangle, in vertex order."""
-    p = points[triangles]  # (M, 3, 3)
-    a, b, c = p[:, 0], p[:, 1], p[:, 2]
-
-    def cos_at(v: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
-        e1, e2 = u - v, w - v
-        den = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
-        return np.einsum("ij,ij->i", e1, e2) / np.maximum(den, 1e-300)
-
-    return np.stack([cos_at(a, b, c), cos_at(b, c, a), cos_at(c, a, b)], axis=1)
+    return _cosines(*_edges(points, triangles))
 
 
 def canonical_order(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -55,14 +64,59 @@ def with_ambiguous_permutations(points: np.ndarray, triangles: np.ndarray,
     return np.concatenate(extra)
 
 
+def _tilts(points: np.ndarray, normals: np.ndarray, triangles: np.ndarray, ab: np.ndarray | None = None,
+           ca: np.ndarray | None = None) -> np.ndarray:
+    """|cos| of the angle between each vertex normal and the triangle's plane normal."""
+    if ab is None or ca is None:
+        p = points[triangles]
+        ab, ca = p[:, 1] - p[:, 0], p[:, 0] - p[:, 2]
+    n_tri = np.cross(ab, -ca)
+    n_tri /= np.maximum(np.linalg.norm(n_tri, axis=1, keepdims=True), 1e-300)
+    return np.abs(np.einsum("mvi,mi->mv", normals[triangles], n_tri))
+
+
 def triangle_descriptors(points: np.ndarray, normals: np.ndarray | None, triangles: np.ndarray,
                          normal_weight: float = 0.0) -> np.ndarray:
     """(M, 3) inner-angle cosines, or (M, 6) with the weighted vertex-normal terms appended."""
-    cos = inner_angle_cosines(points, triangles)
+    ab, bc, ca, l_ab, l_bc, l_ca = _edges(points, triangles)
+    cos = _cosines(ab, bc, ca, l_ab, l_bc, l_ca)
     if normal_weight <= 0 or normals is None or len(triangles) == 0:
         return cos
-    p = points[triangles]
-    n_tri = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    n_tri /= np.maximum(np.linalg.norm(n_tri, axis=1, keepdims=True), 1e-300)
-    tilt = np.abs(np.einsum("mvi,mi->mv", normals[triangles], n_tri))
-    return np.hstack([cos, normal_weight * tilt])
+    return np.hstack([cos, normal_weight * _tilts(points, normals, triangles, ab, ca)])
+
+
+#: vertex orders added by :func:`described_with_permutations`: (permutation, which swap it needs)
+_PERMUTATIONS = (((1, 0, 2), "01"), ((0, 2, 1), "12"), ((1, 2, 0), "both"), ((2, 0, 1), "both"),
+                 ((2, 1, 0), "both"))
+
+
+def described_with_permutations(points: np.ndarray, normals: np.ndarray | None, triangles: np.ndarray,
+                                normal_weight: float = 0.0, margin: float = 0.08, permute: bool = True
+                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles (with the ambiguous variants of :func:`with_ambiguous_permutations` when ``permute``),
+    their descriptors (as :func:`triangle_descriptors`) and perimeters, from one pass over the edges.
+
+    A variant's cosines are its triangle's, reordered (an angle does not depend on the order of its
+    two edges); its normal terms are computed from its own vertex order, like any triangle's.
+    """
+    ab, bc, ca, l_ab, l_bc, l_ca = _edges(points, triangles)
+    cos = _cosines(ab, bc, ca, l_ab, l_bc, l_ca)
+    perimeter = l_ab + l_bc + l_ca
+    tri_parts, cos_parts, per_parts = [triangles], [cos], [perimeter]
+    if permute and len(triangles):
+        swap = {"01": cos[:, 1] - cos[:, 0] < margin, "12": cos[:, 2] - cos[:, 1] < margin}
+        swap["both"] = swap["01"] & swap["12"]
+        # length of the edge between vertices (u, v) of the original order: 0-1 ab, 1-2 bc, 2-0 ca
+        lengths = {frozenset((0, 1)): l_ab, frozenset((1, 2)): l_bc, frozenset((0, 2)): l_ca}
+        for perm, need in _PERMUTATIONS:
+            rows = swap[need]
+            tri_parts.append(triangles[rows][:, list(perm)])
+            cos_parts.append(cos[rows][:, list(perm)])
+            e = [lengths[frozenset((perm[v], perm[(v + 1) % 3]))][rows] for v in range(3)]
+            per_parts.append(e[0] + e[1] + e[2])
+    tri, cos_all, per = np.concatenate(tri_parts), np.concatenate(cos_parts), np.concatenate(per_parts)
+    if normal_weight <= 0 or normals is None or len(tri) == 0:
+        return tri, cos_all, per
+    n0 = len(triangles)
+    tilt = np.concatenate([_tilts(points, normals, triangles, ab, ca), _tilts(points, normals, tri[n0:])])
+    return tri, np.hstack([cos_all, normal_weight * tilt]), per

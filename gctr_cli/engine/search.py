@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.config import EngineConfig
-from gctr_cli.engine.descriptor import triangle_descriptors, with_ambiguous_permutations
+from gctr_cli.engine.descriptor import described_with_permutations
 from gctr_cli.engine.power_iteration import power_iteration
 from gctr_cli.engine.prepare import PreparedCloud, StageTimer
 from gctr_cli.engine.ransac import Hypotheses, ransac_hypotheses, refit, sample_from_assignment
@@ -211,12 +211,6 @@ def _local_triangles(points: np.ndarray, region: float, n: int, cfg: EngineConfi
     return sample_triangles(points, n, tri.min_edge_ratio * region, rng, tri.min_angle_deg, max_edge=max_edge)
 
 
-def _perimeters(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Perimeter of each triangle (i, j, k)."""
-    a, b, c = points[triangles[:, 0]], points[triangles[:, 1]], points[triangles[:, 2]]
-    return np.linalg.norm(a - b, axis=1) + np.linalg.norm(b - c, axis=1) + np.linalg.norm(c - a, axis=1)
-
-
 @dataclass(frozen=True)
 class TriangleMatchInput:
     """What the third-order tensor of one hypothesis is built from: both sides' triangles (vertex
@@ -235,14 +229,14 @@ def hypothesis_triangles(src: PreparedCloud, tgt: PreparedCloud, hypothesis: Ove
     matches whose perimeter ratio (the scale they imply) the prior allows."""
     tri, w = cfg.triplets, cfg.tensor.normal_weight
     S, Q = src.salient, tgt.salient
-    src_tri = _local_triangles(S, hypothesis.region_src, tri.n_source, cfg, rng)
-    tgt_tri = with_ambiguous_permutations(Q, _local_triangles(Q, hypothesis.region_tgt, tri.n_target, cfg, rng))
+    src_tri, f_src, src_size = described_with_permutations(
+        S, src.salient_normals, _local_triangles(S, hypothesis.region_src, tri.n_source, cfg, rng), w, permute=False)
+    tgt_tri, f_tgt, tgt_size = described_with_permutations(
+        Q, tgt.salient_normals, _local_triangles(Q, hypothesis.region_tgt, tri.n_target, cfg, rng), w)
     size_filter = None
     if cfg.tensor.scale_filter:
-        size_filter = (_perimeters(S, src_tri), _perimeters(Q, tgt_tri), prior[0] / SCALE_FILTER_SLACK,
-                       prior[1] * SCALE_FILTER_SLACK)
-    return TriangleMatchInput(src_tri, tgt_tri, triangle_descriptors(S, src.salient_normals, src_tri, w),
-                              triangle_descriptors(Q, tgt.salient_normals, tgt_tri, w), size_filter)
+        size_filter = (src_size, tgt_size, prior[0] / SCALE_FILTER_SLACK, prior[1] * SCALE_FILTER_SLACK)
+    return TriangleMatchInput(src_tri, tgt_tri, f_src, f_tgt, size_filter)
 
 
 def hypothesis_tensor(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float],
