@@ -746,3 +746,31 @@ def test_reversed_candidate_inverts_transforms_and_swaps_shares():
     back = r.reversed()
     assert np.allclose(back.transform, T, atol=1e-12) and back.agreement == c.agreement
 
+
+def test_settle_rules_stop_on_agreement_or_on_consensus():
+    """The search stops after one hypothesis with a high agreement, after ``settle_support`` agreeing
+    hypotheses with a good agreement, or after ``settle_consensus`` agreeing ones with a modest agreement."""
+    from types import SimpleNamespace
+
+    from gctr_cli.engine.search import Candidate, settled
+    from gctr_cli.engine.verdict import Agreement
+    from gctr_cli.geometry import to_matrix
+
+    src = SimpleNamespace(surface=SimpleNamespace(sample=np.random.default_rng(0).normal(size=(100, 3)) * 0.3))
+    T = to_matrix(1.0, np.eye(3), np.zeros(3))
+    far = to_matrix(1.0, Rotation.from_euler("z", 90, degrees=True).as_matrix(), np.zeros(3))
+
+    def cand(M: np.ndarray, score: float) -> Candidate:
+        return Candidate(transform=M, n_inliers=10, iterations=1, agreement=Agreement(score, score), overlap=1.0,
+                         alternatives=())
+
+    cfg = EngineConfig.model_validate({"outer": {"settle_consensus": 3, "settle_consensus_agreement": 0.15}})
+    assert settled(cand(T, 0.75), [cand(T, 0.75)], src, cfg)  # alone
+    assert not settled(cand(T, 0.6), [cand(T, 0.6)], src, cfg)
+    assert settled(cand(T, 0.6), [cand(T, 0.6), cand(T, 0.55)], src, cfg)  # support 2 at >= 0.5
+    low = [cand(T, 0.2), cand(far, 0.18), cand(T, 0.19)]
+    assert not settled(low[0], low, src, cfg)  # two agree at 0.2: not enough
+    assert settled(low[0], low + [cand(T, 0.17)], src, cfg)  # three agree at >= 0.15
+    assert not settled(cand(T, 0.1), [cand(T, 0.1)] * 4, src, cfg)  # consensus below its agreement
+    off = EngineConfig.model_validate({"outer": {"settle_consensus": 0}})
+    assert not settled(low[0], low + [cand(T, 0.17)], src, off)
