@@ -101,7 +101,7 @@ class OuterLoopConfig(_Strict):
     settle_alone: float = Field(
         0.7, ge=0, le=1, description="stop after a single hypothesis whose surface agreement reaches this; 1 = never")
     settle_consensus: int = Field(
-        3, ge=0, description="also stop once this many hypotheses found the same transform, even with a lower "
+        0, ge=0, description="also stop once this many hypotheses found the same transform, even with a lower "
                              "agreement (settle_consensus_agreement); 0 = never")
     settle_consensus_agreement: float = Field(0.15, ge=0, le=1,
                                               description="... and its surface agreement is at least this")
