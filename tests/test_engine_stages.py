@@ -165,10 +165,44 @@ def test_ambiguous_permutations_only_for_near_equal_angles():
     np.testing.assert_array_equal(out[:3], batch)
 
 
+def _reference_description(P: np.ndarray, N: np.ndarray, tri: np.ndarray, normal_weight: float,
+                           permute: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The descriptor stage written out the straightforward way (as it was before the one-pass version): each
+    vertex's cosine from its own two edge vectors, the variants appended in a fixed order, the normal terms and
+    the perimeter from each triangle's own vertex order."""
+    def cosines(t: np.ndarray) -> np.ndarray:
+        p = P[t]
+
+        def cos_at(v: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
+            e1, e2 = u - v, w - v
+            den = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+            return np.einsum("ij,ij->i", e1, e2) / np.maximum(den, 1e-300)
+
+        return np.stack([cos_at(p[:, 0], p[:, 1], p[:, 2]), cos_at(p[:, 1], p[:, 2], p[:, 0]),
+                         cos_at(p[:, 2], p[:, 0], p[:, 1])], axis=1)
+
+    out = [tri]
+    if permute:
+        cos = cosines(tri)
+        swap01, swap12 = cos[:, 1] - cos[:, 0] < 0.08, cos[:, 2] - cos[:, 1] < 0.08
+        out += [tri[swap01][:, [1, 0, 2]], tri[swap12][:, [0, 2, 1]]]
+        out += [tri[swap01 & swap12][:, perm] for perm in ([1, 2, 0], [2, 0, 1], [2, 1, 0])]
+    t = np.concatenate(out)
+    f = cosines(t)
+    if normal_weight > 0:
+        p = P[t]
+        n_tri = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        n_tri /= np.maximum(np.linalg.norm(n_tri, axis=1, keepdims=True), 1e-300)
+        f = np.hstack([f, normal_weight * np.abs(np.einsum("mvi,mi->mv", N[t], n_tri))])
+    a, b, c = P[t[:, 0]], P[t[:, 1]], P[t[:, 2]]
+    perimeter = np.linalg.norm(a - b, axis=1) + np.linalg.norm(b - c, axis=1) + np.linalg.norm(c - a, axis=1)
+    return t, f, perimeter
+
+
 @pytest.mark.parametrize("normal_weight", [0.0, 1.0])
-def test_one_pass_description_equals_the_separate_steps(normal_weight):
+def test_one_pass_description_equals_the_straightforward_one(normal_weight):
     """The search's one-pass description (triangles with their ambiguous variants, descriptors, perimeters)
-    is bit for bit what the separate functions give: a variant's cosines are its triangle's, reordered."""
+    is bit for bit the straightforward computation: a variant's cosines are its triangle's, reordered."""
     rng = np.random.default_rng(11)
     P = rng.normal(size=(40, 3))
     N = rng.normal(size=(40, 3))
@@ -179,18 +213,17 @@ def test_one_pass_description_equals_the_separate_steps(normal_weight):
     N = np.vstack([N, np.tile([0.0, 0.0, 1.0], (6, 1))])
     tri = np.vstack([tri, canonical_order(P, np.array([[40, 41, 42], [43, 44, 45]]))])
 
-    out_tri, f, perimeter = described_with_permutations(P, N, tri, normal_weight)
-    expected = with_ambiguous_permutations(P, tri)
-    np.testing.assert_array_equal(out_tri, expected)
-    assert len(expected) > len(tri) + 6  # variants of random triangles as well as the two planted ones
-    np.testing.assert_array_equal(f, triangle_descriptors(P, N, expected, normal_weight))
-    a, b, c = P[expected[:, 0]], P[expected[:, 1]], P[expected[:, 2]]
-    np.testing.assert_array_equal(perimeter, np.linalg.norm(a - b, axis=1) + np.linalg.norm(b - c, axis=1)
-                                  + np.linalg.norm(c - a, axis=1))
-    # without variants: the triangles as given
-    t2, f2, _ = described_with_permutations(P, N, tri, normal_weight, permute=False)
-    np.testing.assert_array_equal(t2, tri)
-    np.testing.assert_array_equal(f2, triangle_descriptors(P, N, tri, normal_weight))
+    for permute in (True, False):
+        got = described_with_permutations(P, N, tri, normal_weight, permute=permute)
+        want = _reference_description(P, N, tri, normal_weight, permute=permute)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g, w)
+        assert len(got[0]) > len(tri) + 6 if permute else len(got[0]) == len(tri)
+    # the other public entry points agree with it
+    t, f, _ = _reference_description(P, N, tri, normal_weight)
+    np.testing.assert_array_equal(with_ambiguous_permutations(P, tri), t)
+    np.testing.assert_array_equal(triangle_descriptors(P, N, t, normal_weight), f)
+    np.testing.assert_array_equal(inner_angle_cosines(P, t), f[:, :3])
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -304,6 +337,25 @@ def test_power_iteration_recovers_planted_permutation(seed):
     X1, _ = power_iteration(H3, H1, first_order_weight=1.0)
     acc1 = float(np.mean(X1.argmax(axis=1) == truth))
     assert acc1 >= 0.95, acc1
+
+
+@pytest.mark.parametrize("knn", [1, 50, 500])
+def test_third_order_entries_are_each_source_triangles_nearest_targets(knn):
+    """The tensor links each source triangle to its ``knn`` nearest target triangles in descriptor space, in
+    the source's order and by increasing distance, whatever order the neighbour search runs in."""
+    rng = np.random.default_rng(5)
+    n1, n2 = 30, 40
+    src_tri = np.array([rng.choice(n1, 3, replace=False) for _ in range(60)])
+    tgt_tri = np.array([rng.choice(n2, 3, replace=False) for _ in range(300)])
+    f_src, f_tgt = rng.random((60, 6)), rng.random((300, 6))
+    H = build_third_order(n1, src_tri, f_src, n2, tgt_tri, f_tgt, knn)
+    k = min(knn, len(tgt_tri))
+    d, j = cKDTree(f_tgt).query(f_src, k=k)
+    d, j = d.reshape(60, k), j.reshape(60, k)
+    s = np.repeat(np.arange(60), k)
+    for slot, v in zip((H.a, H.b, H.c), range(3), strict=True):
+        np.testing.assert_array_equal(slot, src_tri[s, v] * n2 + tgt_tri[j.ravel(), v])
+    np.testing.assert_allclose(H.values, np.exp(-((d / d.mean()) ** 2)).ravel(), rtol=1e-12)
 
 
 def test_first_order_term_alone_and_sparsity():
@@ -774,3 +826,10 @@ def test_settle_rules_stop_on_agreement_or_on_consensus():
     assert not settled(cand(T, 0.1), [cand(T, 0.1)] * 4, src, cfg)  # consensus below its agreement
     off = EngineConfig.model_validate({"outer": {"settle_consensus": 0}})
     assert not settled(low[0], low + [cand(T, 0.17)], src, off)
+    # the consensus rule is the rule for *more* hypotheses at a *lower* agreement
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="must exceed settle_support"):
+        EngineConfig.model_validate({"outer": {"settle_consensus": 2}})
+    with pytest.raises(ValidationError, match="must not exceed settle_agreement"):
+        EngineConfig.model_validate({"outer": {"settle_consensus": 3, "settle_consensus_agreement": 0.6}})

@@ -50,18 +50,7 @@ def with_ambiguous_permutations(points: np.ndarray, triangles: np.ndarray,
                                 margin: float = 0.08) -> np.ndarray:
     """Add, for canonical triangles whose neighbouring angles are within ``margin`` in cosine,
     the variants with those two vertices swapped (and both swaps for near-equilateral ones)."""
-    if len(triangles) == 0:
-        return triangles
-    cos = inner_angle_cosines(points, triangles)
-    extra = [triangles]
-    swap01 = cos[:, 1] - cos[:, 0] < margin
-    swap12 = cos[:, 2] - cos[:, 1] < margin
-    extra.append(triangles[swap01][:, [1, 0, 2]])
-    extra.append(triangles[swap12][:, [0, 2, 1]])
-    both = swap01 & swap12
-    for perm in ([1, 2, 0], [2, 0, 1], [2, 1, 0]):
-        extra.append(triangles[both][:, perm])
-    return np.concatenate(extra)
+    return described_with_permutations(points, None, triangles, margin=margin)[0]
 
 
 def _tilts(points: np.ndarray, normals: np.ndarray, triangles: np.ndarray, ab: np.ndarray | None = None,
