@@ -168,6 +168,8 @@ def sweep_thresholds(configured: float | None) -> tuple[float, ...]:
     if any(abs(float(configured) - t) < 1e-9 for t in grid):
         return grid
     return tuple(sorted((*grid, float(configured))))
+
+
 #: failure diagnostics: engine scores (in [0, 1]) of the truth and of the answer closer than this are "equal"
 DIAGNOSIS_MARGIN = 0.02
 DIAGNOSES = ("search missed", "objective can't tell", "precision")

@@ -67,11 +67,7 @@ def _tilts(points: np.ndarray, normals: np.ndarray, triangles: np.ndarray, ab: n
 def triangle_descriptors(points: np.ndarray, normals: np.ndarray | None, triangles: np.ndarray,
                          normal_weight: float = 0.0) -> np.ndarray:
     """(M, 3) inner-angle cosines, or (M, 6) with the weighted vertex-normal terms appended."""
-    ab, bc, ca, l_ab, l_bc, l_ca = _edges(points, triangles)
-    cos = _cosines(ab, bc, ca, l_ab, l_bc, l_ca)
-    if normal_weight <= 0 or normals is None or len(triangles) == 0:
-        return cos
-    return np.hstack([cos, normal_weight * _tilts(points, normals, triangles, ab, ca)])
+    return described_with_permutations(points, normals, triangles, normal_weight, permute=False)[1]
 
 
 #: vertex orders added by :func:`described_with_permutations`: (permutation, which swap it needs)
