@@ -99,7 +99,7 @@ class OuterLoopConfig(_Strict):
         2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
     settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
     settle_alone: float = Field(
-        0.7, ge=0, le=1, description="stop after a single hypothesis whose surface agreement reaches this; 1 = never")
+        0.6, ge=0, le=1, description="stop after a single hypothesis whose surface agreement reaches this; 1 = never")
     settle_consensus: int = Field(
         0, ge=0, description="also stop once this many hypotheses (more than settle_support) found the same "
                              "transform at a lower agreement; faster on noisy pairs, but the verdict sees fewer "

@@ -817,9 +817,10 @@ def test_settle_rules_stop_on_agreement_or_on_consensus():
                          alternatives=())
 
     cfg = EngineConfig.model_validate({"outer": {"settle_consensus": 3, "settle_consensus_agreement": 0.15}})
-    assert settled(cand(T, 0.75), [cand(T, 0.75)], src, cfg)  # alone
-    assert not settled(cand(T, 0.6), [cand(T, 0.6)], src, cfg)
-    assert settled(cand(T, 0.6), [cand(T, 0.6), cand(T, 0.55)], src, cfg)  # support 2 at >= 0.5
+    assert settled(cand(T, 0.65), [cand(T, 0.65)], src, cfg)  # alone (settle_alone 0.6)
+    assert not settled(cand(T, 0.55), [cand(T, 0.55)], src, cfg)
+    assert settled(cand(T, 0.55), [cand(T, 0.55), cand(T, 0.52)], src, cfg)  # support 2 at >= 0.5
+    assert not settled(cand(T, 0.55), [cand(T, 0.55), cand(far, 0.52)], src, cfg)  # two, but distinct
     low = [cand(T, 0.2), cand(far, 0.18), cand(T, 0.19)]
     assert not settled(low[0], low, src, cfg)  # two agree at 0.2: not enough
     assert settled(low[0], low + [cand(T, 0.17)], src, cfg)  # three agree at >= 0.15
