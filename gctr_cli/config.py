@@ -100,21 +100,6 @@ class OuterLoopConfig(_Strict):
     settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
     settle_alone: float = Field(
         0.6, ge=0, le=1, description="stop after a single hypothesis whose surface agreement reaches this; 1 = never")
-    settle_consensus: int = Field(
-        0, ge=0, description="also stop once this many hypotheses (more than settle_support) found the same "
-                             "transform at a lower agreement; faster on noisy pairs, but the verdict sees fewer "
-                             "rivals and can be over-confident (report set: 3 -> 5 silent wrong); 0 = never")
-    settle_consensus_agreement: float = Field(
-        0.15, ge=0, le=1, description="... and its surface agreement is at least this (at most settle_agreement)")
-
-    @model_validator(mode="after")
-    def _consensus_needs_more_hypotheses(self) -> OuterLoopConfig:
-        if self.settle_consensus and self.settle_consensus <= self.settle_support:
-            raise ValueError(f"settle_consensus ({self.settle_consensus}) must exceed settle_support "
-                             f"({self.settle_support}): it is the rule for more hypotheses at a lower agreement")
-        if self.settle_consensus and self.settle_consensus_agreement > self.settle_agreement:
-            raise ValueError("settle_consensus_agreement must not exceed settle_agreement")
-        return self
 
 
 class RefineConfig(_Strict):

@@ -799,9 +799,9 @@ def test_reversed_candidate_inverts_transforms_and_swaps_shares():
     assert np.allclose(back.transform, T, atol=1e-12) and back.agreement == c.agreement
 
 
-def test_settle_rules_stop_on_agreement_or_on_consensus():
-    """The search stops after one hypothesis with a high agreement, after ``settle_support`` agreeing
-    hypotheses with a good agreement, or after ``settle_consensus`` agreeing ones with a modest agreement."""
+def test_settle_rules_stop_on_agreement_alone_or_on_support():
+    """The search stops after one hypothesis with a high agreement (``settle_alone``), or after
+    ``settle_support`` hypotheses that ended at the same transform with a good agreement."""
     from types import SimpleNamespace
 
     from gctr_cli.engine.search import Candidate, settled
@@ -816,21 +816,12 @@ def test_settle_rules_stop_on_agreement_or_on_consensus():
         return Candidate(transform=M, n_inliers=10, iterations=1, agreement=Agreement(score, score), overlap=1.0,
                          alternatives=())
 
-    cfg = EngineConfig.model_validate({"outer": {"settle_consensus": 3, "settle_consensus_agreement": 0.15}})
-    assert settled(cand(T, 0.65), [cand(T, 0.65)], src, cfg)  # alone (settle_alone 0.6)
+    cfg = EngineConfig()  # settle_alone 0.6, settle_support 2 at settle_agreement 0.5
+    assert settled(cand(T, 0.65), [cand(T, 0.65)], src, cfg)  # alone
     assert not settled(cand(T, 0.55), [cand(T, 0.55)], src, cfg)
     assert settled(cand(T, 0.55), [cand(T, 0.55), cand(T, 0.52)], src, cfg)  # support 2 at >= 0.5
     assert not settled(cand(T, 0.55), [cand(T, 0.55), cand(far, 0.52)], src, cfg)  # two, but distinct
-    low = [cand(T, 0.2), cand(far, 0.18), cand(T, 0.19)]
-    assert not settled(low[0], low, src, cfg)  # two agree at 0.2: not enough
-    assert settled(low[0], low + [cand(T, 0.17)], src, cfg)  # three agree at >= 0.15
-    assert not settled(cand(T, 0.1), [cand(T, 0.1)] * 4, src, cfg)  # consensus below its agreement
-    off = EngineConfig.model_validate({"outer": {"settle_consensus": 0}})
-    assert not settled(low[0], low + [cand(T, 0.17)], src, off)
-    # the consensus rule is the rule for *more* hypotheses at a *lower* agreement
-    from pydantic import ValidationError
-
-    with pytest.raises(ValidationError, match="must exceed settle_support"):
-        EngineConfig.model_validate({"outer": {"settle_consensus": 2}})
-    with pytest.raises(ValidationError, match="must not exceed settle_agreement"):
-        EngineConfig.model_validate({"outer": {"settle_consensus": 3, "settle_consensus_agreement": 0.6}})
+    low = [cand(T, 0.2), cand(far, 0.18), cand(T, 0.19), cand(T, 0.17)]
+    assert not settled(low[0], low, src, cfg)  # many agree, but at a low agreement: the search goes on
+    never = EngineConfig.model_validate({"outer": {"settle_support": 0, "settle_alone": 1.0}})
+    assert not settled(cand(T, 0.95), [cand(T, 0.95)] * 6, src, never)
