@@ -70,9 +70,10 @@ def triangle_descriptors(points: np.ndarray, normals: np.ndarray | None, triangl
     return described_with_permutations(points, normals, triangles, normal_weight, permute=False)[1]
 
 
-#: vertex orders added by :func:`described_with_permutations`: (permutation, which swap it needs)
-_PERMUTATIONS = (((1, 0, 2), "01"), ((0, 2, 1), "12"), ((1, 2, 0), "both"), ((2, 0, 1), "both"),
-                 ((2, 1, 0), "both"))
+#: vertex orders added by :func:`described_with_permutations`: (permutation, which swap it needs, and its
+#: edges v -> v+1 as indices into the original's edges ab, bc, ca — so its perimeter is summed in its own order)
+_PERMUTATIONS = (((1, 0, 2), "01", (0, 2, 1)), ((0, 2, 1), "12", (2, 1, 0)), ((1, 2, 0), "both", (1, 2, 0)),
+                 ((2, 0, 1), "both", (2, 0, 1)), ((2, 1, 0), "both", (1, 0, 2)))
 
 
 def described_with_permutations(points: np.ndarray, normals: np.ndarray | None, triangles: np.ndarray,
@@ -91,14 +92,12 @@ def described_with_permutations(points: np.ndarray, normals: np.ndarray | None, 
     if permute and len(triangles):
         swap = {"01": cos[:, 1] - cos[:, 0] < margin, "12": cos[:, 2] - cos[:, 1] < margin}
         swap["both"] = swap["01"] & swap["12"]
-        # length of the edge between vertices (u, v) of the original order: 0-1 ab, 1-2 bc, 2-0 ca
-        lengths = {frozenset((0, 1)): l_ab, frozenset((1, 2)): l_bc, frozenset((0, 2)): l_ca}
-        for perm, need in _PERMUTATIONS:
+        lengths = (l_ab, l_bc, l_ca)
+        for perm, need, edges in _PERMUTATIONS:
             rows = swap[need]
             tri_parts.append(triangles[rows][:, list(perm)])
             cos_parts.append(cos[rows][:, list(perm)])
-            e = [lengths[frozenset((perm[v], perm[(v + 1) % 3]))][rows] for v in range(3)]
-            per_parts.append(e[0] + e[1] + e[2])
+            per_parts.append(lengths[edges[0]][rows] + lengths[edges[1]][rows] + lengths[edges[2]][rows])
     tri, cos_all, per = np.concatenate(tri_parts), np.concatenate(cos_parts), np.concatenate(per_parts)
     if normal_weight <= 0 or normals is None or len(tri) == 0:
         return tri, cos_all, per
