@@ -29,14 +29,16 @@ from gctr_cli.engine.preprocess import (
     DegenerateCloudError,
     downsample_to,
     estimate_normals,
+    nearest_neighbours,
     normalise,
+    normals_from_neighbours,
     robust_centre_and_size,
     validate_cloud,
 )
 from gctr_cli.engine.ransac import OccupancyGrid, ransac_hypotheses, refit
 from gctr_cli.engine.refine import scaled_point_to_plane_icp
 from gctr_cli.engine.similarity import batched_umeyama, best_similarity, edge_ratio_scale, umeyama
-from gctr_cli.engine.supervoxel import supervoxels
+from gctr_cli.engine.supervoxel import SEED_MIN_VOXELS, SEED_SUPPORT_RADIUS, seed_support, supervoxels
 from gctr_cli.engine.tensor import build_first_order, build_third_order
 from gctr_cli.engine.triplets import sample_triangles
 from gctr_cli.geometry import apply, random_rotation, split, to_matrix
@@ -613,6 +615,33 @@ def test_supervoxel_count_robust_to_outliers():
     noisy = default_supervoxels(noisy_pts, estimate_normals(noisy_pts, 16))
     # 10% outliers should not remove more than a few percent of the salient points
     assert len(noisy.centroids) > 0.9 * len(clean.centroids)
+
+
+def test_seed_support_from_the_normals_neighbours_equals_the_radius_count():
+    """The engine takes the seed eligibility from the normals' kNN distances instead of a radius count:
+    the same voxels, hence the same supervoxels, on a clean surface plus outliers (isolated and not)."""
+    work, _ = bunny_working(0)
+    rng = np.random.default_rng(3)
+    pts = np.vstack([work, rng.uniform(work.min(axis=0), work.max(axis=0), size=(len(work) // 5, 3))])
+    voxel = EngineConfig().supervoxel.voxel_ratio
+    dist, idx = nearest_neighbours(pts, 30)
+    assert dist.shape == idx.shape == (len(pts), 30)
+    np.testing.assert_array_equal(idx[:, 0], np.arange(len(pts)))  # itself first
+    counts = cKDTree(pts).query_ball_point(pts, r=SEED_SUPPORT_RADIUS * voxel, return_length=True)
+    expected = counts >= SEED_MIN_VOXELS
+    assert 0.05 < 1 - expected.mean() < 0.5  # the outliers make both answers occur
+    np.testing.assert_array_equal(seed_support(pts, voxel, dist), expected)
+    np.testing.assert_array_equal(seed_support(pts, voxel), expected)
+    normals = normals_from_neighbours(pts, idx)
+    np.testing.assert_array_equal(normals, estimate_normals(pts, 30))
+    sv = EngineConfig().supervoxel
+    args = dict(voxel=sv.voxel_ratio, seed_spacing=sv.seed_ratio, iterations=sv.iterations, min_voxels=sv.min_voxels)
+    with_knn = supervoxels(pts, normals, neighbour_distances=dist, **args)
+    counted = supervoxels(pts, normals, **args)
+    np.testing.assert_array_equal(with_knn.labels, counted.labels)
+    np.testing.assert_array_equal(with_knn.centroids, counted.centroids)
+    # too few neighbours in the kNN to decide: falls back to the count
+    np.testing.assert_array_equal(seed_support(pts, voxel, dist[:, :SEED_MIN_VOXELS - 1]), expected)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gctr_cli.config import EngineConfig
-from gctr_cli.engine.preprocess import downsample_to, estimate_normals
+from gctr_cli.engine.preprocess import downsample_to, estimate_normals, nearest_neighbours, normals_from_neighbours
 from gctr_cli.engine.ransac import OccupancyGrid
 from gctr_cli.engine.supervoxel import supervoxels
 from gctr_cli.engine.verdict import Surface
@@ -55,11 +55,13 @@ def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     """Working cloud, normals and salient points of one normalised cloud (stages 1-2)."""
     t = time.perf_counter()
     work = downsample_to(points, cfg.supervoxel.voxel_ratio, cfg.preprocess.max_points, rng)
-    normals = estimate_normals(work, cfg.preprocess.normal_neighbours)
+    neighbour_dist, neighbours = nearest_neighbours(work, cfg.preprocess.normal_neighbours)
+    normals = normals_from_neighbours(work, neighbours)
     t = timer.add("preprocess", t)
     sv = supervoxels(work, normals, voxel=cfg.supervoxel.voxel_ratio, seed_spacing=cfg.supervoxel.seed_ratio,
                      spatial_weight=cfg.supervoxel.spatial_weight, normal_weight=cfg.supervoxel.normal_weight,
-                     iterations=cfg.supervoxel.iterations, min_voxels=cfg.supervoxel.min_voxels)
+                     iterations=cfg.supervoxel.iterations, min_voxels=cfg.supervoxel.min_voxels,
+                     neighbour_distances=neighbour_dist)
     # Voxels that no supervoxel reached are isolated — typically outliers. Dropping them from the
     # working cloud keeps outliers out of the refinement and the fitness (with 30% uniform
     # outliers they otherwise pull scaled ICP's scale inwards).

@@ -127,12 +127,24 @@ def downsample_to(points: np.ndarray, voxel: float, max_points: int, rng: np.ran
     return down
 
 
-def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
-    """Unit normals from PCA of the k nearest neighbours (batched 3x3 eigen-decomposition)."""
+def nearest_neighbours(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (sorted) and indices of each point's ``k`` nearest neighbours, itself included,
+    as (N, k) arrays (``k`` is capped at the number of points)."""
     k = min(k, len(points))
-    _, idx = cKDTree(points).query(points, k=k)
+    dist, idx = cKDTree(points).query(points, k=k)
+    return dist.reshape(len(points), k), idx.reshape(len(points), k)
+
+
+def normals_from_neighbours(points: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Unit normals from PCA of each point's neighbours ``idx`` (N, k) (batched 3x3 eigen-decomposition)."""
+    k = idx.shape[1]
     nbrs = points[idx] - points[:, None, :]  # local coordinates: better conditioned sums
     mean = nbrs.mean(axis=1)
     cov = np.matmul(nbrs.transpose(0, 2, 1), nbrs) / k - mean[:, :, None] * mean[:, None, :]
     _, vecs = np.linalg.eigh(cov)
     return vecs[:, :, 0]
+
+
+def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
+    """Unit normals from PCA of the k nearest neighbours."""
+    return normals_from_neighbours(points, nearest_neighbours(points, k)[1])

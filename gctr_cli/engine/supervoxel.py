@@ -51,11 +51,30 @@ def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spaci
     return coo_matrix((w, (i, j)), shape=(len(voxels), len(voxels)))
 
 
-def _initial_seeds(voxels: np.ndarray, seed_spacing: float, voxel: float) -> np.ndarray:
-    """One seed per occupied seed-grid cell: among the voxels with enough neighbours (seeds in
-    isolated, outlier regions are not allowed, as in VCCS), the one closest to the cell centre."""
-    counts = cKDTree(voxels).query_ball_point(voxels, r=2.0 * voxel, return_length=True)
-    eligible = np.flatnonzero(counts >= 4)
+#: a voxel may seed a supervoxel when this many voxels (itself included) lie within
+#: ``SEED_SUPPORT_RADIUS`` voxel sizes of it: seeds in isolated, outlier regions are not allowed (VCCS)
+SEED_MIN_VOXELS = 4
+SEED_SUPPORT_RADIUS = 2.0
+
+
+def seed_support(voxels: np.ndarray, voxel: float, neighbour_distances: np.ndarray | None = None) -> np.ndarray:
+    """Whether each voxel has ``SEED_MIN_VOXELS`` voxels within ``SEED_SUPPORT_RADIUS`` voxel sizes.
+
+    With the sorted distances of each voxel's nearest neighbours (the normals' kNN query, itself
+    first) the test is one comparison: the ``SEED_MIN_VOXELS``-th nearest lies within the radius.
+    Without them, a radius count.
+    """
+    radius = SEED_SUPPORT_RADIUS * voxel
+    if neighbour_distances is not None and neighbour_distances.shape[1] >= SEED_MIN_VOXELS:
+        return neighbour_distances[:, SEED_MIN_VOXELS - 1] <= radius
+    counts = cKDTree(voxels).query_ball_point(voxels, r=radius, return_length=True)
+    return counts >= SEED_MIN_VOXELS
+
+
+def _initial_seeds(voxels: np.ndarray, seed_spacing: float, eligible_mask: np.ndarray) -> np.ndarray:
+    """One seed per occupied seed-grid cell: among the eligible voxels (:func:`seed_support`), the
+    one closest to the cell centre."""
+    eligible = np.flatnonzero(eligible_mask)
     if len(eligible) == 0:
         return eligible
     pts = voxels[eligible]
@@ -67,14 +86,16 @@ def _initial_seeds(voxels: np.ndarray, seed_spacing: float, voxel: float) -> np.
 
 def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spacing: float,
                 spatial_weight: float = 1.0, normal_weight: float = 1.0, iterations: int = 3,
-                min_voxels: int = 2) -> Supervoxels:
+                min_voxels: int = 2, neighbour_distances: np.ndarray | None = None) -> Supervoxels:
     """Segment voxel centroids ``points`` (with ``normals``) into supervoxels.
 
-    ``voxel`` and ``seed_spacing`` are in the cloud's own (normalised) units.
+    ``voxel`` and ``seed_spacing`` are in the cloud's own (normalised) units. ``neighbour_distances``
+    (optional): sorted distances of each point's nearest neighbours, itself first, e.g. from the
+    normals' kNN query; they save the seed-support count (:func:`seed_support`).
     """
     n = len(points)
     graph = _adjacency(points, normals, voxel, seed_spacing, spatial_weight, normal_weight).tocsr()
-    seeds = _initial_seeds(points, seed_spacing, voxel)
+    seeds = _initial_seeds(points, seed_spacing, seed_support(points, voxel, neighbour_distances))
     # Growth is bounded: a voxel farther than ~1.5 seed spacings (in graph distance) stays unlabelled.
     limit = 1.5 * spatial_weight + normal_weight
     labels = np.full(n, -1)
