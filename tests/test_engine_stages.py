@@ -642,6 +642,19 @@ def test_seed_support_from_the_normals_neighbours_equals_the_radius_count():
     np.testing.assert_array_equal(with_knn.centroids, counted.centroids)
     # too few neighbours in the kNN to decide: falls back to the count
     np.testing.assert_array_equal(seed_support(pts, voxel, dist[:, :SEED_MIN_VOXELS - 1]), expected)
+    with pytest.raises(ValueError, match="rows for"):
+        seed_support(pts, voxel, dist[:-1])
+
+
+def test_seed_support_counts_neighbours_exactly_on_the_radius():
+    """A unit square lattice with voxel 0.5 (radius 1.0): the neighbours are exactly on the radius and
+    count. A corner has itself + 2 (not eligible), an edge point itself + 3 and an inner point itself
+    + 4 (eligible) — both ways of deciding."""
+    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0), [0.0], indexing="ij"), -1).reshape(-1, 3)
+    dist, _ = nearest_neighbours(grid, 8)
+    corner = (grid[:, 0] % 3 == 0) & (grid[:, 1] % 3 == 0)
+    for support in (seed_support(grid, 0.5, dist), seed_support(grid, 0.5)):
+        np.testing.assert_array_equal(support, ~corner)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -128,8 +128,8 @@ def downsample_to(points: np.ndarray, voxel: float, max_points: int, rng: np.ran
 
 
 def nearest_neighbours(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Distances (sorted) and indices of each point's ``k`` nearest neighbours, itself included,
-    as (N, k) arrays (``k`` is capped at the number of points)."""
+    """Distances (sorted) and indices of each point's ``k`` nearest neighbours, itself included
+    (distance 0), as (N, k) arrays (``k`` is capped at the number of points)."""
     k = min(k, len(points))
     dist, idx = cKDTree(points).query(points, k=k)
     return dist.reshape(len(points), k), idx.reshape(len(points), k)

@@ -58,14 +58,19 @@ SEED_SUPPORT_RADIUS = 2.0
 
 
 def seed_support(voxels: np.ndarray, voxel: float, neighbour_distances: np.ndarray | None = None) -> np.ndarray:
-    """Whether each voxel has ``SEED_MIN_VOXELS`` voxels within ``SEED_SUPPORT_RADIUS`` voxel sizes.
+    """Whether each voxel has at least ``SEED_MIN_VOXELS`` voxels (itself included) within
+    ``SEED_SUPPORT_RADIUS`` voxel sizes.
 
     With the sorted distances of each voxel's nearest neighbours (the normals' kNN query, itself
-    first) the test is one comparison: the ``SEED_MIN_VOXELS``-th nearest lies within the radius.
-    Without them, a radius count.
+    included at distance 0) the test is one comparison: the ``SEED_MIN_VOXELS``-th nearest lies within
+    the radius. Without them, a radius count. The two agree except for a 4th neighbour less than one
+    rounding step (ulp) outside the radius: the kNN distance is a rounded square root, the count compares
+    squared distances.
     """
     radius = SEED_SUPPORT_RADIUS * voxel
     if neighbour_distances is not None and neighbour_distances.shape[1] >= SEED_MIN_VOXELS:
+        if len(neighbour_distances) != len(voxels):
+            raise ValueError(f"neighbour_distances has {len(neighbour_distances)} rows for {len(voxels)} voxels")
         return neighbour_distances[:, SEED_MIN_VOXELS - 1] <= radius
     counts = cKDTree(voxels).query_ball_point(voxels, r=radius, return_length=True)
     return counts >= SEED_MIN_VOXELS
@@ -90,7 +95,7 @@ def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spac
     """Segment voxel centroids ``points`` (with ``normals``) into supervoxels.
 
     ``voxel`` and ``seed_spacing`` are in the cloud's own (normalised) units. ``neighbour_distances``
-    (optional): sorted distances of each point's nearest neighbours, itself first, e.g. from the
+    (optional): sorted distances of each point's nearest neighbours, itself included, e.g. from the
     normals' kNN query; they save the seed-support count (:func:`seed_support`).
     """
     n = len(points)
