@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import platform
+import time
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +114,36 @@ def voxel_downsample_to_count(points: np.ndarray, target: int, iterations: int =
     assert best is not None  # iterations >= 1
     voxel = float(best[1])
     return voxel_downsample(points, voxel), voxel
+
+
+#: repetitions of :func:`reference_workload_seconds` (the minimum is reported)
+REFERENCE_REPEATS = 5
+
+
+def reference_workload_seconds(repeats: int = REFERENCE_REPEATS) -> float:
+    """Seconds (minimum of ``repeats``) of a fixed numpy/scipy task that does not depend on gctr's code:
+    a k-d tree over 6000 seeded random points, their 30 nearest neighbours, 6000 symmetric 3x3
+    eigen-decompositions and a sort of a million numbers — the kinds of work the engine does.
+
+    On a shared machine the same code has run up to 2x faster on one day than on another (the engine, and
+    even ``python -c pass``), as much as a code change moves the times. Reported beside a benchmark's
+    times, this task says how fast the machine was during the run: divide each run's times by its
+    reference before comparing two runs.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(20261202)
+    points = rng.random((6000, 3))
+    numbers = rng.random(1_000_000)
+    best = math.inf
+    for _ in range(max(1, repeats)):
+        start = time.perf_counter()
+        _, idx = cKDTree(points).query(points, k=30)
+        local = points[idx] - points[:, None, :]
+        np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))
+        np.sort(numbers)
+        best = min(best, time.perf_counter() - start)
+    return best
 
 
 def machine_info() -> dict[str, str]:

@@ -178,6 +178,9 @@ def test_stage_table_and_failed_list_render():
             "(median wall/CPU time ratio 1.07)") in text
     rows[1]["time_s"] = 6.0  # wall twice the CPU time: contention
     assert "they took CPU from the benchmark" in be.render_section(rows, ["cross"], info)
+    assert "Machine reference" not in text  # a report rendered without the reference has no such line
+    with_reference = be.render_section(rows, ["cross"], {**info, "reference_s": (0.0551, 0.0562)})
+    assert "- Machine reference: 0.055 s before, 0.056 s after the run" in with_reference
 
 
 # ------------------------------------------------------------------------------------------ issue 9 verdicts
@@ -211,10 +214,22 @@ def test_render_verdicts_and_targets():
     targets = {t[0].split(":")[0]: (t[1], t[2]) for t in be._targets(stats, rows, info)}
     assert targets["`part`"] == ("1/2 (50.0%), 2 models/scenes", False)
     assert targets["silent wrong ≤ 1% of all pairs over all levels"] == ("2/4 (50.0%)", False)
+    time_target = [t for t in be._targets(stats, rows, {**info, "reference_s": (0.5, 0.6)}) if "median time" in t[0]]
+    assert time_target[0][1].endswith("; 5.0× the machine reference")  # median 2.5 s / 0.5 s
     assert be.SUCCESS_TARGETS["scene"] == 0.80 and be.SUCCESS_TARGETS["sfm"] == 0.95
 
 
 # ------------------------------------------------------------------------------------------ issue 10 stages before
+def test_reference_workload_is_a_positive_time_and_takes_the_fastest_repeat(monkeypatch):
+    from data_scripts import common
+
+    clock = iter([0.0, 0.3, 1.0, 1.1, 2.0, 2.5])  # repeats of 0.3, 0.1 and 0.5 s
+    monkeypatch.setattr(common.time, "perf_counter", lambda: next(clock))
+    assert common.reference_workload_seconds(repeats=3) == pytest.approx(0.1)
+    monkeypatch.undo()
+    assert 0 < common.reference_workload_seconds(repeats=1) < 30
+
+
 def test_read_stage_table_of_the_committed_before_file():
     path = REPO / "bench" / "stages-before-speed.md"
     before = be.read_stage_table(path.read_text(), str(path))
