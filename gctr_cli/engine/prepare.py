@@ -55,25 +55,26 @@ def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     """Working cloud, normals and salient points of one normalised cloud (stages 1-2)."""
     t = time.perf_counter()
     work = downsample_to(points, cfg.supervoxel.voxel_ratio, cfg.preprocess.max_points, rng)
-    neighbour_dist, neighbours = nearest_neighbours(work, cfg.preprocess.normal_neighbours)
+    tree = cKDTree(work)  # one tree for the normals, the voxel graph and (if nothing is dropped) the later lookups
+    neighbour_dist, neighbours = nearest_neighbours(work, cfg.preprocess.normal_neighbours, tree)
     normals = normals_from_neighbours(work, neighbours)
     t = timer.add("preprocess", t)
     sv = supervoxels(work, normals, voxel=cfg.supervoxel.voxel_ratio, seed_spacing=cfg.supervoxel.seed_ratio,
                      spatial_weight=cfg.supervoxel.spatial_weight, normal_weight=cfg.supervoxel.normal_weight,
                      iterations=cfg.supervoxel.iterations, min_voxels=cfg.supervoxel.min_voxels,
-                     neighbour_distances=neighbour_dist)
+                     neighbour_distances=neighbour_dist, tree=tree)
     # Voxels that no supervoxel reached are isolated — typically outliers. Dropping them from the
     # working cloud keeps outliers out of the refinement and the fitness (with 30% uniform
     # outliers they otherwise pull scaled ICP's scale inwards).
     surface = sv.labels >= 0
-    if cfg.preprocess.drop_isolated and surface.sum() >= max(50, len(work) // 4):
+    if cfg.preprocess.drop_isolated and not surface.all() and surface.sum() >= max(50, len(work) // 4):
         work, normals = work[surface], normals[surface]
+        tree = cKDTree(work)
     salient, salient_normals = sv.centroids, sv.normals
     if len(salient) > cfg.supervoxel.max_salient:
         keep = np.sort(np.argsort(-sv.sizes, kind="stable")[: cfg.supervoxel.max_salient])
         salient, salient_normals = salient[keep], salient_normals[keep]
     timer.add("supervoxels", t)
-    tree = cKDTree(work)
     return PreparedCloud(points=work, normals=normals, tree=tree, salient=salient, salient_normals=salient_normals,
                      salient_tree=cKDTree(salient),
                      surface=Surface.build(work, normals, tree, cfg.verdict.sample_points))

@@ -127,11 +127,12 @@ def downsample_to(points: np.ndarray, voxel: float, max_points: int, rng: np.ran
     return down
 
 
-def nearest_neighbours(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def nearest_neighbours(points: np.ndarray, k: int, tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Distances (sorted) and indices of each point's ``k`` nearest neighbours, itself included
-    (distance 0), as (N, k) arrays (``k`` is capped at the number of points)."""
+    (distance 0), as (N, k) arrays (``k`` is capped at the number of points). ``tree``: a k-d tree over
+    ``points`` if the caller has one."""
     k = min(k, len(points))
-    dist, idx = cKDTree(points).query(points, k=k)
+    dist, idx = (tree if tree is not None else cKDTree(points)).query(points, k=k)
     return dist.reshape(len(points), k), idx.reshape(len(points), k)
 
 

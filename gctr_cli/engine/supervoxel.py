@@ -38,9 +38,9 @@ def _group_argmin(groups: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, n
 
 
 def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spacing: float,
-               spatial_weight: float, normal_weight: float) -> coo_matrix:
+               spatial_weight: float, normal_weight: float, tree: cKDTree | None = None) -> coo_matrix:
     """Weighted 26-neighbour graph: w = ws * step / seed_spacing + wn * (1 - |n_i . n_j|)."""
-    tree = cKDTree(voxels)
+    tree = tree if tree is not None else cKDTree(voxels)
     pairs = tree.query_pairs(r=voxel * 1.8, output_type="ndarray")
     if len(pairs) == 0:
         return coo_matrix((len(voxels), len(voxels)))
@@ -91,15 +91,17 @@ def _initial_seeds(voxels: np.ndarray, seed_spacing: float, eligible_mask: np.nd
 
 def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spacing: float,
                 spatial_weight: float = 1.0, normal_weight: float = 1.0, iterations: int = 3,
-                min_voxels: int = 2, neighbour_distances: np.ndarray | None = None) -> Supervoxels:
+                min_voxels: int = 2, neighbour_distances: np.ndarray | None = None,
+                tree: cKDTree | None = None) -> Supervoxels:
     """Segment voxel centroids ``points`` (with ``normals``) into supervoxels.
 
     ``voxel`` and ``seed_spacing`` are in the cloud's own (normalised) units. ``neighbour_distances``
     (optional): sorted distances of each point's nearest neighbours, itself included, e.g. from the
-    normals' kNN query; they save the seed-support count (:func:`seed_support`).
+    normals' kNN query; they save the seed-support count (:func:`seed_support`). ``tree`` (optional): a
+    k-d tree over ``points``, reused for the voxel graph.
     """
     n = len(points)
-    graph = _adjacency(points, normals, voxel, seed_spacing, spatial_weight, normal_weight).tocsr()
+    graph = _adjacency(points, normals, voxel, seed_spacing, spatial_weight, normal_weight, tree).tocsr()
     seeds = _initial_seeds(points, seed_spacing, seed_support(points, voxel, neighbour_distances))
     # Growth is bounded: a voxel farther than ~1.5 seed spacings (in graph distance) stays unlabelled.
     limit = 1.5 * spatial_weight + normal_weight
