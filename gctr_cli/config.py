@@ -142,6 +142,9 @@ class VerdictConfig(_Strict):
     ambiguity_ratio: float = Field(
         0.8, gt=0, le=1,
         description="a refused answer is called ambiguous when its rival reaches this share of its agreement")
+    normal_balance: float = Field(
+        0.5, ge=0, le=1,
+        description="agreement weights each point by (points sharing its normal direction)^-this; 0 = all equal")
 
 
 class EngineConfig(_Strict):

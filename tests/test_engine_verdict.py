@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from data_scripts.make_benchmark import make_part_pair, make_sfm_pair
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine import register, score_transform
-from gctr_cli.engine.verdict import Agreement, Surface, confidence, surface_agreement
+from gctr_cli.engine.verdict import Agreement, Surface, confidence, normal_space_weights, surface_agreement
 from gctr_cli.io import load_point_cloud
 from gctr_cli.metrics import transform_errors
 
@@ -80,6 +80,46 @@ def test_surface_agreement_counts_proximity_and_normals():
     T = np.diag([0.5, 0.5, 0.5, 1.0])
     a3 = surface_agreement(T, _surface(2 * pts, nrm), _surface(pts, nrm), 0.05)
     assert a3.source > 0.95 and a3.target > 0.95
+
+
+def test_normal_space_weights_balance_a_dominant_plane():
+    rng = np.random.default_rng(3)
+    up = np.tile([0.0, 0.0, 1.0], (900, 1))  # a ground plane: 90% of the points
+    other = rng.normal(size=(100, 3))
+    other /= np.linalg.norm(other, axis=1, keepdims=True)
+    normals = np.vstack([up, other])
+    w = normal_space_weights(normals, 0.5)
+    assert w.mean() == pytest.approx(1.0)
+    # count^-0.5: the plane's 900 points weigh as much as sqrt(900) = 30 points would alone
+    share_plane = w[:900].sum() / w.sum()
+    assert 0.1 < share_plane < 0.5
+    assert normal_space_weights(normals, 1.0)[:900].sum() / w.sum() < share_plane
+    # normals are lines: n and -n fall into the same bin
+    assert np.array_equal(normal_space_weights(-normals, 0.5), w)
+
+
+def test_weighted_agreement_discounts_the_dominant_plane():
+    """A scene that is mostly floor: a transform aligning only the floor explains most points, but far
+    less of the weighted agreement, which the walls' and posts' directions count in full."""
+    rng = np.random.default_rng(4)
+    floor = np.column_stack([rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)])
+    wall = np.column_stack([np.full(500, 1.0), rng.uniform(-1, 1, 500), rng.uniform(0, 0.5, 500)])
+    wall2 = np.column_stack([rng.uniform(-1, 1, 500), np.full(500, 1.0), rng.uniform(0, 0.5, 500)])
+    pts = np.vstack([floor, wall, wall2])
+    nrm = np.vstack([np.tile([0.0, 0, 1], (3000, 1)), np.tile([1.0, 0, 0], (500, 1)), np.tile([0.0, 1, 0], (500, 1))])
+    from scipy.spatial import cKDTree
+
+    def surf(p: np.ndarray, balance: float) -> Surface:
+        return Surface.build(p, nrm, cKDTree(p), 800, normal_balance=balance)
+
+    slide = np.eye(4)
+    slide[:2, 3] = [0.2, 0.1]  # slides along the floor: the walls no longer meet
+    plain = surface_agreement(slide, surf(pts, 0.0), surf(pts, 0.0), 0.05)
+    balanced = surface_agreement(slide, surf(pts, 0.5), surf(pts, 0.5), 0.05)
+    truth = surface_agreement(np.eye(4), surf(pts, 0.5), surf(pts, 0.5), 0.05)
+    assert plain.score > 0.45  # the floor alone: half of the points
+    assert balanced.score < plain.score - 0.1
+    assert truth.score == pytest.approx(1.0)
 
 
 def test_confidence_is_the_lead_over_the_rival():
@@ -164,3 +204,20 @@ def test_threshold_is_a_config_key():
     assert 0.0 < res.confidence < 0.99
     err = _errors(res.transform, pair.T_gt, pair.source, pair.target)
     assert err.rot_err_deg < 2.0  # refused, but the best transform found is still reported
+
+
+def test_refusal_message_states_the_lead_in_percentage_points():
+    from gctr_cli.engine.decide import refusal_message
+    from gctr_cli.engine.verdict import Verdict
+
+    cfg = EngineConfig()
+
+    def message(score: float, rival: float) -> str:
+        v = Verdict(confidence=confidence(score, rival, cfg.verdict.full_margin), score=score, rival_score=rival,
+                    agreement=Agreement(score, score), support=1.0)
+        return refusal_message(v, cfg)
+
+    assert "explains 13% of the two surfaces, only 1 percentage point more than" in message(0.13, 0.12)
+    assert "only 4 percentage points more than" in message(0.10, 0.06)
+    assert message(0.10, 0.11).startswith("low confidence 0.00") and "no more than a distinct" in message(0.10, 0.11)
+    assert message(0.50, 0.48).startswith("ambiguous: two distinct alignments")

@@ -98,6 +98,8 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     if verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score and verdict.score >= AMBIGUITY_MIN_SCORE:
         return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
                 f"confidence {verdict.confidence:.2f}, threshold {cfg.min_confidence:.2f})")
-    return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment puts "
-            f"{100 * verdict.score:.0f}% of the points on the other surface, only {100 * lead:.0f} points more "
-            f"than a distinct alternative ({scores})")
+    points = round(100 * lead)
+    margin = ("no more than" if points <= 0 else
+              f"only {points} percentage point{'' if points == 1 else 's'} more than")
+    return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment "
+            f"explains {100 * verdict.score:.0f}% of the two surfaces, {margin} a distinct alternative ({scores})")

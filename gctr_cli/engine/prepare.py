@@ -77,7 +77,8 @@ def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     timer.add("supervoxels", t)
     return PreparedCloud(points=work, normals=normals, tree=tree, salient=salient, salient_normals=salient_normals,
                      salient_tree=cKDTree(salient),
-                     surface=Surface.build(work, normals, tree, cfg.verdict.sample_points))
+                     surface=Surface.build(work, normals, tree, cfg.verdict.sample_points,
+                                                cfg.verdict.normal_balance))
 
 
 @dataclass(frozen=True)
@@ -95,7 +96,8 @@ class RefinementCloud:
         pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
         normals = estimate_normals(pts, cfg.preprocess.normal_neighbours)
         tree = cKDTree(pts)
-        return cls(pts, normals, tree, Surface.build(pts, normals, tree, cfg.verdict.sample_points))
+        return cls(pts, normals, tree, Surface.build(pts, normals, tree, cfg.verdict.sample_points,
+                                                    cfg.verdict.normal_balance))
 
     @classmethod
     def of(cls, prepared: PreparedCloud, points: np.ndarray, cfg: EngineConfig,

@@ -8,7 +8,10 @@ Two measures, both on the working clouds in normalised coordinates:
   noisy, outlier-ridden or partial clouds (a wrong pose still puts a third of the points near some
   surface); proximity with agreeing normals is rare by chance. The engine ranks its candidates by
   :attr:`Agreement.score`, the mean of the two shares, which works for partial overlaps in both
-  directions: a part inside a whole has a high source share and a low target share.
+  directions: a part inside a whole has a high source share and a low target share. Each sample
+  point counts with the weight ``count ** -verdict.normal_balance`` of its normal direction
+  (:func:`normal_space_weights`), so that a dominant plane — the ground of a LiDAR sweep, the walls
+  and floor of a room — cannot explain most of a scene on its own.
 * **confidence** in [0, 1]: how far the answer's agreement leads the best *distinct* alternative
   (a second transform that explains the data almost as well means the data do not single out one
   answer). See :func:`confidence`.
@@ -34,11 +37,41 @@ class Surface:
     tree: cKDTree
     sample: np.ndarray
     sample_normals: np.ndarray
+    sample_weights: np.ndarray | None = None  # None: every sample point counts the same
 
     @classmethod
-    def build(cls, points: np.ndarray, normals: np.ndarray, tree: cKDTree, n_sample: int) -> Surface:
+    def build(cls, points: np.ndarray, normals: np.ndarray, tree: cKDTree, n_sample: int,
+              normal_balance: float = 0.0) -> Surface:
         step = max(1, len(points) // n_sample)
-        return cls(points, normals, tree, points[::step], normals[::step])
+        sample, sample_normals = points[::step], normals[::step]
+        weights = normal_space_weights(sample_normals, normal_balance) if normal_balance > 0 else None
+        return cls(points, normals, tree, sample, sample_normals, weights)
+
+
+#: cells per axis of each cube face in the normal histogram of :func:`normal_space_weights`
+NORMAL_BIN_CELLS = 4
+
+
+def normal_space_weights(normals: np.ndarray, exponent: float) -> np.ndarray:
+    """Weights ``count(bin) ** -exponent`` of unsigned unit normals binned on a cube map of the
+    half-sphere (3 faces x ``NORMAL_BIN_CELLS``^2 cells), scaled to mean 1.
+
+    A dominant plane (the ground of a LiDAR sweep, the walls of a room) holds most points of a scene;
+    counted point by point it lets any transform that aligns that plane explain most of the data.
+    Weighting each point by the rarity of its normal direction makes every direction of constraint
+    count (normal-space sampling, Rusinkiewicz & Levoy 2001, as weights).
+    """
+    a = np.abs(normals)
+    face = np.argmax(a, axis=1)
+    rows = np.arange(len(normals))
+    lead = normals[rows, face]
+    lead = np.where(lead == 0, 1.0, lead)
+    other = np.stack([normals[rows, (face + 1) % 3], normals[rows, (face + 2) % 3]], axis=1) / lead[:, None]
+    cells = np.clip(((other + 1.0) * 0.5 * NORMAL_BIN_CELLS).astype(np.int64), 0, NORMAL_BIN_CELLS - 1)
+    bins = (face * NORMAL_BIN_CELLS + cells[:, 0]) * NORMAL_BIN_CELLS + cells[:, 1]
+    counts = np.bincount(bins, minlength=3 * NORMAL_BIN_CELLS ** 2).astype(np.float64)
+    w = counts[bins] ** -exponent
+    return w / w.mean()
 
 
 @dataclass(frozen=True)
@@ -69,9 +102,11 @@ def surface_matches(points: np.ndarray, normals: np.ndarray | None, other_normal
 
 
 def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surface, distance: float,
-                      min_cos: float) -> float:
+                      min_cos: float, weights: np.ndarray | None = None) -> float:
     i, _ = surface_matches(moved, moved_normals, other.normals, other.tree, distance, min_cos)
-    return len(i) / len(moved)
+    if weights is None:
+        return len(i) / len(moved)
+    return float(weights[i].sum() / weights.sum())
 
 
 def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float,
@@ -86,9 +121,10 @@ def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float
         return Agreement(0.0, 0.0)
     R = A / s
     min_cos = float(np.cos(np.radians(max_angle_deg)))
-    fwd = _share_on_surface(apply(T, src.sample), src.sample_normals @ R.T, tgt, distance, min_cos)
+    fwd = _share_on_surface(apply(T, src.sample), src.sample_normals @ R.T, tgt, distance, min_cos,
+                            src.sample_weights)
     back_pts = (tgt.sample - T[:3, 3]) @ R / s
-    back = _share_on_surface(back_pts, tgt.sample_normals @ R, src, distance / s, min_cos)
+    back = _share_on_surface(back_pts, tgt.sample_normals @ R, src, distance / s, min_cos, tgt.sample_weights)
     return Agreement(fwd, back)
 
 
