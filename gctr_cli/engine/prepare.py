@@ -78,7 +78,7 @@ def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     return PreparedCloud(points=work, normals=normals, tree=tree, salient=salient, salient_normals=salient_normals,
                      salient_tree=cKDTree(salient),
                      surface=Surface.build(work, normals, tree, cfg.verdict.sample_points,
-                                                cfg.verdict.normal_balance))
+                                           cfg.verdict.normal_balance))
 
 
 @dataclass(frozen=True)
@@ -96,8 +96,8 @@ class RefinementCloud:
         pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
         normals = estimate_normals(pts, cfg.preprocess.normal_neighbours)
         tree = cKDTree(pts)
-        return cls(pts, normals, tree, Surface.build(pts, normals, tree, cfg.verdict.sample_points,
-                                                    cfg.verdict.normal_balance))
+        surface = Surface.build(pts, normals, tree, cfg.verdict.sample_points, cfg.verdict.normal_balance)
+        return cls(pts, normals, tree, surface)
 
     @classmethod
     def of(cls, prepared: PreparedCloud, points: np.ndarray, cfg: EngineConfig,

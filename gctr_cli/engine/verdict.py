@@ -30,7 +30,8 @@ from gctr_cli.geometry import apply
 @dataclass(frozen=True)
 class Surface:
     """A working cloud as the verdict sees it: all points with normals and a tree, plus a fixed
-    evenly strided sample that is moved and looked up (keeps scoring cheap and deterministic)."""
+    evenly strided sample that is moved and looked up (keeps scoring cheap and deterministic), and
+    the sample's weights by normal direction (:func:`normal_space_weights`)."""
 
     points: np.ndarray
     normals: np.ndarray
