@@ -57,7 +57,7 @@ def _sphere(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 def _surface(points: np.ndarray, normals: np.ndarray, n_sample: int = 400) -> Surface:
     from scipy.spatial import cKDTree
 
-    return Surface.build(points, normals, cKDTree(points), n_sample)
+    return Surface.build(points, normals, cKDTree(points), n_sample, normal_balance=0.0)
 
 
 def test_surface_agreement_counts_proximity_and_normals():
@@ -93,9 +93,11 @@ def test_normal_space_weights_balance_a_dominant_plane():
     # count^-0.5: the plane's 900 points weigh as much as sqrt(900) = 30 points would alone
     share_plane = w[:900].sum() / w.sum()
     assert 0.1 < share_plane < 0.5
-    assert normal_space_weights(normals, 1.0)[:900].sum() / w.sum() < share_plane
-    # normals are lines: n and -n fall into the same bin
-    assert np.array_equal(normal_space_weights(-normals, 0.5), w)
+    w1 = normal_space_weights(normals, 1.0)
+    assert w1[:900].sum() / w1.sum() < share_plane
+    # normals are lines: n and -n fall into the same bin, whichever rows are flipped
+    flip = np.where(rng.random(len(normals)) < 0.5, -1.0, 1.0)[:, None]
+    assert np.array_equal(normal_space_weights(flip * normals, 0.5), w)
 
 
 def test_weighted_agreement_discounts_the_dominant_plane():
@@ -117,9 +119,23 @@ def test_weighted_agreement_discounts_the_dominant_plane():
     plain = surface_agreement(slide, surf(pts, 0.0), surf(pts, 0.0), 0.05)
     balanced = surface_agreement(slide, surf(pts, 0.5), surf(pts, 0.5), 0.05)
     truth = surface_agreement(np.eye(4), surf(pts, 0.5), surf(pts, 0.5), 0.05)
-    assert plain.score > 0.45  # the floor alone: half of the points
+    assert plain.score > 0.45  # the floor (75% of the points) still matches where it overlaps itself
     assert balanced.score < plain.score - 0.1
     assert truth.score == pytest.approx(1.0)
+
+
+def test_engine_surfaces_are_weighted_by_default():
+    """The default config weights the working cloud's sample (``verdict.normal_balance`` 0.5); 0 turns
+    the weights off."""
+    from gctr_cli.engine.prepare import StageTimer, prepare_cloud
+    from gctr_cli.engine.preprocess import normalise
+
+    points = normalise(_model("bunny")).points
+    weighted = prepare_cloud(points, EngineConfig(), np.random.default_rng(0), StageTimer({})).surface
+    assert weighted.sample_weights is not None and len(weighted.sample_weights) == len(weighted.sample)
+    assert weighted.sample_weights.mean() == pytest.approx(1.0) and weighted.sample_weights.std() > 0.1
+    off = EngineConfig.model_validate({"verdict": {"normal_balance": 0.0}})
+    assert prepare_cloud(points, off, np.random.default_rng(0), StageTimer({})).surface.sample_weights is None
 
 
 def test_confidence_is_the_lead_over_the_rival():
