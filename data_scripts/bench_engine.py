@@ -112,6 +112,8 @@ BASE_COLUMNS = [
     "outcome", "confidence", "would_succeed", "score_truth", "score_answer", "diagnosis",
     "time_s", "cpu_s", "load_s",
 ]
+#: the verdict's inputs (``RegistrationResult.evidence``): what a change to the confidence is studied on
+EVIDENCE_COLUMNS = ["score", "rival_score", "source_agreement", "target_agreement", "support"]
 MEMORY_COLUMNS = ["rss_baseline_mb", "peak_rss_mb", "rss_increment_mb", "ru_maxrss_mb", "load_avg_1m"]
 SECTION_BEGIN = "<!-- bench-section: {} -->"
 SECTION_END = "<!-- /bench-section -->"
@@ -207,6 +209,8 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     # Issue 9: the verdict. A failed result still carries its best transform: whether it would have been a
     # success feeds the offline confidence-threshold sweep (None: no usable transform, e.g. the identity).
     row["confidence"] = float(getattr(result, "confidence", math.nan))
+    evidence = dict(getattr(result, "evidence", None) or {})
+    row.update({k: float(evidence.get(k, math.nan)) for k in EVIDENCE_COLUMNS})
     row["would_succeed"] = bool(ok_errors) if usable_transform(result.transform) else None
     row["outcome"] = outcome(row)
     if row["outcome"] != "success" and task.get("diagnose", True):
@@ -434,7 +438,8 @@ def stage_names(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def csv_columns(stages: list[str]) -> list[str]:
-    return BASE_COLUMNS + [f"t_{s}" for s in stages] + ["t_other"] + MEMORY_COLUMNS + ["message"]
+    return (BASE_COLUMNS + EVIDENCE_COLUMNS + [f"t_{s}" for s in stages] + ["t_other"] + MEMORY_COLUMNS
+            + ["message"])
 
 
 def _fmt(value: Any) -> str:
