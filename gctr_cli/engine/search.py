@@ -138,10 +138,13 @@ def outer_loop(src: PreparedCloud, tgt: PreparedCloud, H3: SparseTensor3, overla
             s, R, tr = rr.scale, rr.rotation, rr.translation
         T_new = to_matrix(s, R, tr)
         timer.add("similarity", t)
-        # Converged when the salient points stop moving (RMS displacement, normalised units).
+        # Converged when the salient points stop moving (RMS displacement, normalised units), or
+        # settled: this round's best hypothesis already explains so much of both clouds
+        # (``outer.settle_alone``) that further rounds would only polish what the verdict's ICP refines.
         converged = T is not None and displacement(T_new, T, S) < cfg.outer.tol
+        settled_now = max(a.score for _, a in finalists) >= cfg.outer.settle_alone
         T, n_inliers = T_new, rr.n_inliers
-        if converged:
+        if converged or settled_now:
             break
     if T is None:
         return None
