@@ -136,6 +136,10 @@ class VerdictConfig(_Strict):
     rival_pool: int = Field(30, ge=0, description="best unrefined transforms of the search also checked as rivals")
     tight_distance_ratio: float = Field(
         0.02, gt=0, lt=1, description="final comparison: distance / robust target diameter")
+    tight_noise_factor: float = Field(
+        1.0, ge=0, le=10,
+        description="... at least this times the clouds' combined surface roughness, the normal angle "
+                    "widened alike (noisy clouds); 0 = fixed")
     tight_normal_angle_deg: float = Field(
         20.0, gt=0, le=90, description="final comparison: normals agree below this angle")
     full_margin: float = Field(

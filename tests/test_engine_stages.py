@@ -870,3 +870,46 @@ def test_settle_rules_stop_on_agreement_alone_or_on_support():
     assert not settled(low[0], low, src, cfg)  # many agree, but at a low agreement: the search goes on
     never = EngineConfig.model_validate({"outer": {"settle_support": 0, "settle_alone": 1.0}})
     assert not settled(cand(T, 0.95), [cand(T, 0.95)] * 6, src, never)
+
+
+def test_roughness_measures_the_noise_across_the_surface():
+    """The roughness of a plane is the spread of its points along the normal: ~0 without noise, ~sigma
+    with Gaussian noise of sigma along the normal (small against the neighbourhood: 30 points span ~0.05
+    here); the normals are those of normals_from_neighbours."""
+    from gctr_cli.engine.preprocess import normals_and_roughness
+
+    rng = np.random.default_rng(7)
+    flat = np.c_[rng.uniform(0, 1, size=(4000, 2)), np.zeros(4000)]
+    R = random_rotation(rng)
+    for sigma in (0.0, 0.005, 0.01):
+        pts = (flat + np.c_[np.zeros((4000, 2)), rng.normal(scale=sigma, size=4000)]) @ R.T
+        idx = nearest_neighbours(pts, 30)[1]
+        normals, roughness = normals_and_roughness(pts, idx)
+        np.testing.assert_array_equal(normals, normals_from_neighbours(pts, idx))
+        assert roughness == pytest.approx(sigma, rel=0.25, abs=1e-9)
+        if sigma == 0.0:
+            assert np.all(np.abs(normals @ R[:, 2]) > 1 - 1e-9)
+
+
+def test_tight_tolerances_widen_only_on_noisy_clouds():
+    """The verdict's tight distance is ``tight_distance_ratio`` unless the clouds' combined roughness
+    (the source's in target units) times ``tight_noise_factor`` is larger; the normal angle widens by
+    the same factor, at most 90 degrees; factor 0 keeps both fixed."""
+    from types import SimpleNamespace
+
+    from gctr_cli.engine.decide import tight_tolerances
+
+    cfg = EngineConfig()
+    v = cfg.verdict
+    clean, noisy = SimpleNamespace(roughness=0.005), SimpleNamespace(roughness=0.02)
+    assert tight_tolerances(clean, clean, 1.0, cfg) == pytest.approx((v.tight_distance_ratio,
+                                                                       v.tight_normal_angle_deg), rel=1e-12)
+    widened = v.tight_noise_factor * np.hypot(0.02, 0.02)
+    assert tight_tolerances(noisy, noisy, 1.0, cfg) == pytest.approx(
+        (widened, v.tight_normal_angle_deg * widened / v.tight_distance_ratio), rel=1e-12)
+    assert tight_tolerances(noisy, clean, 0.5, cfg)[0] == max(v.tight_distance_ratio,
+                                                              v.tight_noise_factor * float(np.hypot(0.01, 0.005)))
+    assert tight_tolerances(SimpleNamespace(roughness=0.5), noisy, 1.0, cfg)[1] == 90.0
+    fixed = EngineConfig.model_validate({"verdict": {"tight_noise_factor": 0.0}})
+    assert tight_tolerances(noisy, noisy, 1.0, fixed) == pytest.approx(
+        (fixed.verdict.tight_distance_ratio, fixed.verdict.tight_normal_angle_deg), rel=1e-12)

@@ -19,20 +19,38 @@ from gctr_cli.engine.verdict import Agreement, Verdict, confidence, displacement
 AMBIGUITY_MIN_SCORE = 0.15
 
 
-def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
-                     cfg: EngineConfig) -> Agreement:
-    """Surface agreement at the verdict's tight tolerances, on the refinement clouds."""
+def tight_tolerances(src_ref: RefinementCloud, tgt_ref: RefinementCloud, scale: float,
+                     cfg: EngineConfig) -> tuple[float, float]:
+    """The verdict's tight distance (normalised target units) and normal angle (degrees).
+
+    The distance is ``verdict.tight_distance_ratio``, widened on noisy clouds to
+    ``verdict.tight_noise_factor`` times their combined roughness (the source's carried into target
+    units by ``scale``); the angle ``verdict.tight_normal_angle_deg`` widens by the same factor (noise
+    tilts the PCA normals as it spreads the points), at most 90°. Fixed tolerances near the noise
+    level leave every transform, the right one included, explaining only a small share of the data,
+    and right answers lose their lead over the rivals.
+    """
     v = cfg.verdict
-    return surface_agreement(T, src_ref.surface, tgt_ref.surface, v.tight_distance_ratio, v.tight_normal_angle_deg)
+    noise = float(np.hypot(scale * src_ref.roughness, tgt_ref.roughness))
+    distance = max(v.tight_distance_ratio, v.tight_noise_factor * noise)
+    return distance, min(90.0, v.tight_normal_angle_deg * distance / v.tight_distance_ratio)
+
+
+def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
+                     tolerances: tuple[float, float]) -> Agreement:
+    """Surface agreement at the verdict's tight ``tolerances`` (:func:`tight_tolerances`), on the
+    refinement clouds."""
+    return surface_agreement(T, src_ref.surface, tgt_ref.surface, *tolerances)
 
 
 def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
-            bounds_n: tuple[float, float], timer: StageTimer) -> tuple[np.ndarray, Agreement]:
+            bounds_n: tuple[float, float], timer: StageTimer,
+            tolerances: tuple[float, float]) -> tuple[np.ndarray, Agreement]:
     """Scaled ICP polish of a coarse transform on the refinement clouds, kept only when its tight surface
     agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
     verdict's objective exposes it). Returns the transform and its tight agreement."""
     r, v = cfg.refine, cfg.verdict
-    before = _tight_agreement(T_n, src_ref, tgt_ref, cfg)
+    before = _tight_agreement(T_n, src_ref, tgt_ref, tolerances)
     if not r.enabled:
         return T_n, before
     t = time.perf_counter()
@@ -46,7 +64,7 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
         T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
                                     bounds_n, tgt_ref.tree)
     timer.add("refine", t)
-    after = _tight_agreement(T_r, src_ref, tgt_ref, cfg)
+    after = _tight_agreement(T_r, src_ref, tgt_ref, tolerances)
     return (T_r, after) if after.score >= before.score else (T_n, before)
 
 
@@ -74,14 +92,15 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             finalists.append(T)
             if len(finalists) == v.refined_finalists:
                 break
-    refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer) for T in finalists),
+    tolerances = tight_tolerances(src_ref, tgt_ref, float(np.cbrt(np.linalg.det(pool[0][0][:3, :3]))), cfg)
+    refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, tolerances) for T in finalists),
                      key=lambda x: -x[1].score)
     T_answer, agreement = refined[0]
     # Rivals: the other refined finalists, and (unrefined, so at a disadvantage) the best of the
     # rest of the pool — finalists can converge onto the answer when refined.
     rivals = [a.score for T, a in refined[1:] if distinct(T, T_answer)]
     unrefined = islice((T for T, _ in pool if distinct(T, T_answer)), v.rival_pool)
-    rivals += [_tight_agreement(T, src_ref, tgt_ref, cfg).score for T in unrefined]
+    rivals += [_tight_agreement(T, src_ref, tgt_ref, tolerances).score for T in unrefined]
     rival_score = max(rivals, default=0.0)
     support = sum(not distinct(T_answer, c.transform) for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)

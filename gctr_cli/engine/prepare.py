@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gctr_cli.config import EngineConfig
-from gctr_cli.engine.preprocess import downsample_to, estimate_normals, nearest_neighbours, normals_from_neighbours
+from gctr_cli.engine.preprocess import downsample_to, nearest_neighbours, normals_and_roughness
 from gctr_cli.engine.ransac import OccupancyGrid
 from gctr_cli.engine.supervoxel import supervoxels
 from gctr_cli.engine.verdict import Surface
@@ -42,6 +42,7 @@ class PreparedCloud:
     salient_normals: np.ndarray
     salient_tree: cKDTree
     surface: Surface  # what the verdict moves and looks up
+    roughness: float  # median distance of the points from their local PCA planes (preprocess.normals_and_roughness)
     grids: dict = field(default_factory=dict, compare=False)
 
     def grid(self, radius: float) -> OccupancyGrid:
@@ -57,7 +58,7 @@ def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     work = downsample_to(points, cfg.supervoxel.voxel_ratio, cfg.preprocess.max_points, rng)
     tree = cKDTree(work)  # one tree for the normals, the voxel graph and (if nothing is dropped) the later lookups
     neighbour_dist, neighbours = nearest_neighbours(work, cfg.preprocess.normal_neighbours, tree)
-    normals = normals_from_neighbours(work, neighbours)
+    normals, roughness = normals_and_roughness(work, neighbours)
     t = timer.add("preprocess", t)
     sv = supervoxels(work, normals, voxel=cfg.supervoxel.voxel_ratio, seed_spacing=cfg.supervoxel.seed_ratio,
                      spatial_weight=cfg.supervoxel.spatial_weight, normal_weight=cfg.supervoxel.normal_weight,
@@ -76,7 +77,7 @@ def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
         salient, salient_normals = salient[keep], salient_normals[keep]
     timer.add("supervoxels", t)
     return PreparedCloud(points=work, normals=normals, tree=tree, salient=salient, salient_normals=salient_normals,
-                     salient_tree=cKDTree(salient),
+                     salient_tree=cKDTree(salient), roughness=roughness,
                      surface=Surface.build(work, normals, tree, cfg.verdict.sample_points,
                                            cfg.verdict.normal_balance))
 
@@ -90,14 +91,16 @@ class RefinementCloud:
     normals: np.ndarray
     tree: cKDTree
     surface: Surface
+    roughness: float  # as PreparedCloud.roughness
 
     @classmethod
     def build(cls, points: np.ndarray, cfg: EngineConfig, rng: np.random.Generator) -> RefinementCloud:
         pts = downsample_to(points, cfg.refine.voxel_ratio, cfg.refine.max_points, rng)
-        normals = estimate_normals(pts, cfg.preprocess.normal_neighbours)
         tree = cKDTree(pts)
+        normals, roughness = normals_and_roughness(pts, nearest_neighbours(pts, cfg.preprocess.normal_neighbours,
+                                                                           tree)[1])
         surface = Surface.build(pts, normals, tree, cfg.verdict.sample_points, cfg.verdict.normal_balance)
-        return cls(pts, normals, tree, surface)
+        return cls(pts, normals, tree, surface, roughness)
 
     @classmethod
     def of(cls, prepared: PreparedCloud, points: np.ndarray, cfg: EngineConfig,
@@ -105,5 +108,5 @@ class RefinementCloud:
         """The refinement cloud of one input: the search's working cloud itself when
         ``refine.voxel_ratio`` is 0, else a finer downsampling of ``points``."""
         if cfg.refine.voxel_ratio == 0:
-            return cls(prepared.points, prepared.normals, prepared.tree, prepared.surface)
+            return cls(prepared.points, prepared.normals, prepared.tree, prepared.surface, prepared.roughness)
         return cls.build(points, cfg, rng)

@@ -138,12 +138,20 @@ def nearest_neighbours(points: np.ndarray, k: int, tree: cKDTree | None = None) 
 
 def normals_from_neighbours(points: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Unit normals from PCA of each point's neighbours ``idx`` (N, k) (batched 3x3 eigen-decomposition)."""
+    return normals_and_roughness(points, idx)[0]
+
+
+def normals_and_roughness(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, float]:
+    """Unit normals as :func:`normals_from_neighbours`, and the cloud's surface roughness: the median
+    RMS distance of a point's neighbours from their PCA plane (the square root of the smallest
+    eigenvalue; sensor noise, plus curvature and the sampling at the neighbourhood's scale)."""
     k = idx.shape[1]
     nbrs = points[idx] - points[:, None, :]  # local coordinates: better conditioned sums
     mean = nbrs.mean(axis=1)
     cov = np.matmul(nbrs.transpose(0, 2, 1), nbrs) / k - mean[:, :, None] * mean[:, None, :]
-    _, vecs = np.linalg.eigh(cov)
-    return vecs[:, :, 0]
+    vals, vecs = np.linalg.eigh(cov)
+    roughness = float(np.median(np.sqrt(np.maximum(vals[:, 0], 0.0)))) if len(vals) else 0.0
+    return vecs[:, :, 0], roughness
 
 
 def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
