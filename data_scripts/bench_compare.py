@@ -64,7 +64,8 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
-from collections.abc import Sequence  # noqa: E402
+from collections.abc import Iterator, Sequence  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
 from dataclasses import asdict, dataclass  # noqa: E402
 from datetime import UTC, datetime  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -341,6 +342,25 @@ def run_one_batch(name: str, level: str, config: Path, settings: Settings, work:
         raise BenchError(f"{shlex.join(cmd)} exited with {run.exit_code}:\n{run.stderr_tail}")
     _log(f"{name:12s} {level:6s} {run.n_pairs:3d} pairs  {run.wall_s:7.1f} s  peak {run.peak_rss_mb:6.0f} MB")
     return run
+
+
+@contextmanager
+def one_core(enabled: bool) -> Iterator[int | None]:
+    """While active, pin this process, and so every batch, worker and profile process it starts, to one
+    CPU (the last one it may use), and yield it (None when not ``enabled`` or where the OS has no
+    affinity call); the previous affinity is restored afterwards. With one worker per batch each method
+    then runs on one core — also KISS-Matcher, whose TBB threads would otherwise take a second core
+    whenever the machine has one idle."""
+    if not enabled or not hasattr(os, "sched_setaffinity"):
+        yield None
+        return
+    before = os.sched_getaffinity(0)
+    cpu = max(before)
+    os.sched_setaffinity(0, {cpu})
+    try:
+        yield cpu
+    finally:
+        os.sched_setaffinity(0, before)
 
 
 def run_batches(settings: Settings, work: Path, data: Path) -> tuple[list[BatchRun], list[BatchRun]]:
@@ -911,8 +931,13 @@ def single_core_section(stats, methods, meta: dict[str, Any]) -> list[str]:
     gctr_t = stats[("gctr", "all")]["time_med"] if ("gctr", "all") in stats else math.nan
     L = ["## Single core: time per pair and whole process (issue 10)", "",
          f"Registration time per pair: median `runtime_s` over all pairs of this run, one worker per batch "
-         f"(`{meta.get('command', 'python -m data_scripts.bench_compare')}`; each batch process and its worker "
-         "use one core, BLAS/OpenMP single-threaded; KISS-Matcher runs its own TBB threads). Whole process: "
+         f"(`{meta.get('command', 'python -m data_scripts.bench_compare')}`; "
+         + (f"the whole run pinned to CPU {meta['pinned_cpu']} (`os.sched_setaffinity`), so every method, "
+            "KISS-Matcher's TBB threads included, ran on one core; BLAS/OpenMP single-threaded). "
+            if meta.get("pinned_cpu") is not None else
+            "each batch process and its worker use one core, BLAS/OpenMP single-threaded; not pinned, so "
+            "KISS-Matcher's TBB threads may have used a second core). ")
+         + "Whole process: "
          "median wall time of `gctr register -c <method config> SOURCE TARGET -o MATRIX` on one 20k/20k-point "
          "pair pinned to one core, from `bench/PROCESS.md` (`make bench-process`, "
          "`python -m data_scripts.bench_process`; reading, imports and writing included)"
@@ -1181,7 +1206,7 @@ def main(argv: list[str] | None = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     (work / "results").mkdir(exist_ok=True)
     command = "python -m data_scripts.bench_compare" + (" " + shlex.join(argv) if argv else "")
-    with LoadSampler() as sampler:
+    with one_core(settings.workers == 1) as pinned_cpu, LoadSampler() as sampler:
         generate_command = ensure_data(settings, data)
         base_rss = baseline_rss(work)
         try:
@@ -1206,6 +1231,7 @@ def main(argv: list[str] | None = None) -> int:
         "code_state": describe_code(code_at_start, code_state()),
         "total_wall_s": time.monotonic() - t0,
         "work_rel": _rel(work),
+        "pinned_cpu": pinned_cpu,
     }
     meta_path.write_text(json.dumps({"meta": meta, "runs": [asdict(r) for r in runs],
                                      "ablations": [asdict(r) for r in ablation_runs], "profile": profile}, indent=1))

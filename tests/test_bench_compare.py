@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -295,3 +296,15 @@ def test_process_times_reads_the_process_report(tmp_path):
         "| `Open3D script` | 2.411 | 2.019 |\n| `gctr --help` | 0.170 | 0.111 |\n", encoding="utf-8")
     assert process_times(report) == {"gctr": 1.846, "kiss_matcher": 2.795, "open3d_script": 2.411}
     assert process_times(tmp_path / "missing.md") == {}
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity on this OS")
+def test_one_core_pins_the_run_and_restores_the_affinity():
+    """A full run (one worker per batch) is pinned to one CPU, so multi-threaded methods get one core like
+    the others; the affinity before the run comes back afterwards (tests call main() in-process)."""
+    before = os.sched_getaffinity(0)
+    with bc.one_core(True) as cpu:
+        assert cpu == max(before) and os.sched_getaffinity(0) == {cpu}
+    assert os.sched_getaffinity(0) == before
+    with bc.one_core(False) as cpu:
+        assert cpu is None and os.sched_getaffinity(0) == before
