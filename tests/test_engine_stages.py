@@ -33,12 +33,20 @@ from gctr_cli.engine.preprocess import (
     normalise,
     normals_from_neighbours,
     robust_centre_and_size,
+    smallest_eigenpairs,
     validate_cloud,
 )
 from gctr_cli.engine.ransac import OccupancyGrid, ransac_hypotheses, refit
 from gctr_cli.engine.refine import scaled_point_to_plane_icp
 from gctr_cli.engine.similarity import batched_umeyama, best_similarity, edge_ratio_scale, umeyama
-from gctr_cli.engine.supervoxel import SEED_MIN_VOXELS, SEED_SUPPORT_RADIUS, seed_support, supervoxels
+from gctr_cli.engine.supervoxel import (
+    ADJACENCY_RADIUS,
+    SEED_MIN_VOXELS,
+    SEED_SUPPORT_RADIUS,
+    _adjacency,
+    seed_support,
+    supervoxels,
+)
 from gctr_cli.engine.tensor import build_first_order, build_third_order
 from gctr_cli.engine.triplets import sample_triangles
 from gctr_cli.geometry import apply, random_rotation, split, to_matrix
@@ -640,10 +648,60 @@ def test_seed_support_from_the_normals_neighbours_equals_the_radius_count():
     counted = supervoxels(pts, normals, **args)
     np.testing.assert_array_equal(with_knn.labels, counted.labels)
     np.testing.assert_array_equal(with_knn.centroids, counted.centroids)
+    # the voxel graph read off the same kNN lists (what the engine does): the same supervoxels
+    listed = supervoxels(pts, normals, neighbour_distances=dist, neighbour_indices=idx, **args)
+    np.testing.assert_array_equal(listed.labels, counted.labels)
+    np.testing.assert_array_equal(listed.centroids, counted.centroids)
     # too few neighbours in the kNN to decide: falls back to the count
     np.testing.assert_array_equal(seed_support(pts, voxel, dist[:, :SEED_MIN_VOXELS - 1]), expected)
     with pytest.raises(ValueError, match="rows for"):
         seed_support(pts, voxel, dist[:-1])
+
+
+def test_voxel_graph_from_the_knn_lists_equals_the_radius_query():
+    """The supervoxels' adjacency read off the normals' kNN lists has exactly the radius query's edges
+    and weights: on a surface (the lists are long enough) and in a dense volumetric cluster (some
+    voxels have more neighbours within the radius than listed: the radius query is used)."""
+    rng = np.random.default_rng(5)
+    surface, _ = bunny_working(0)
+    cluster = rng.uniform(0, 0.08, size=(600, 3))  # ~60 voxels of 0.02 within 1.8 voxels of each other
+    for pts, saturated in ((surface, False), (cluster, True)):
+        normals = rng.normal(size=pts.shape)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        dist, idx = nearest_neighbours(pts, 30)
+        assert bool((dist[:, -1] <= 0.02 * ADJACENCY_RADIUS).any()) == saturated
+        by_radius = _adjacency(pts, normals, 0.02, 0.12, 1.0, 1.0).tocsr()
+        by_lists = _adjacency(pts, normals, 0.02, 0.12, 1.0, 1.0, neighbours=(dist, idx)).tocsr()
+        assert by_radius.nnz == by_lists.nnz > len(pts)
+        assert abs(by_radius - by_lists).max() == 0.0
+
+
+def test_smallest_eigenpairs_match_lapack():
+    """The closed-form smallest eigenpair of symmetric 3x3 matrices agrees with ``np.linalg.eigh`` on
+    planar, line-like, isotropic, zero and random covariances; degenerate ones (any unit vector is
+    an answer) still get a finite unit vector and the right eigenvalue."""
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(400, 20, 3)) * np.array([1.0, 0.5, 0.01])  # planar neighbourhoods
+    rot = Rotation.random(400, random_state=3).as_matrix()
+    pts = np.einsum("nij,nkj->nki", rot, pts)
+    cov_planar = np.einsum("nki,nkj->nij", pts, pts) / 20
+    random = rng.normal(size=(400, 3, 3))
+    cov_random = random @ random.transpose(0, 2, 1)
+    line = np.zeros((1, 3, 3))
+    line[0, 0, 0] = 1.0  # eigenvalues 1, 0, 0
+    degenerate = np.concatenate([np.zeros((1, 3, 3)), np.eye(3)[None] * 2.0, line])
+    for cov, unique in ((cov_planar, True), (cov_random, True), (degenerate, False)):
+        rows = np.stack([cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]], axis=1)
+        lam, vec = smallest_eigenpairs(rows)
+        vals, vecs = np.linalg.eigh(cov)
+        scale = np.abs(vals).max(axis=1) + 1e-300
+        # repeated eigenvalues cost the trigonometric solution about half the digits
+        np.testing.assert_allclose(lam / scale, vals[:, 0] / scale, atol=1e-12 if unique else 1e-7)
+        np.testing.assert_allclose(np.linalg.norm(vec, axis=1), 1.0, atol=1e-12)
+        residual = np.einsum("nij,nj->ni", cov, vec) - lam[:, None] * vec
+        assert np.abs(residual).max(axis=1).max() <= (1e-10 if unique else 1e-7) * scale.max()
+        if unique:  # the same line as LAPACK's eigenvector
+            np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", vec, vecs[:, :, 0])), 1.0, atol=1e-9)
 
 
 def test_seed_support_counts_neighbours_exactly_on_the_radius():

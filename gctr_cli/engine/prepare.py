@@ -63,7 +63,8 @@ def prepare_cloud(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     sv = supervoxels(work, normals, voxel=cfg.supervoxel.voxel_ratio, seed_spacing=cfg.supervoxel.seed_ratio,
                      spatial_weight=cfg.supervoxel.spatial_weight, normal_weight=cfg.supervoxel.normal_weight,
                      iterations=cfg.supervoxel.iterations, min_voxels=cfg.supervoxel.min_voxels,
-                     neighbour_distances=neighbour_dist, tree=tree)
+                     neighbour_distances=neighbour_dist, tree=tree,
+                     neighbour_indices=neighbours)
     # Voxels that no supervoxel reached are isolated — typically outliers. Dropping them from the
     # working cloud keeps outliers out of the refinement and the fitness (with 30% uniform
     # outliers they otherwise pull scaled ICP's scale inwards).

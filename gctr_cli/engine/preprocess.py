@@ -145,13 +145,63 @@ def normals_and_roughness(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarr
     """Unit normals as :func:`normals_from_neighbours`, and the cloud's surface roughness: the median
     RMS distance of a point's neighbours from their PCA plane (the square root of the smallest
     eigenvalue; sensor noise, plus curvature and the sampling at the neighbourhood's scale)."""
-    k = idx.shape[1]
-    nbrs = points[idx] - points[:, None, :]  # local coordinates: better conditioned sums
-    mean = nbrs.mean(axis=1)
-    cov = np.matmul(nbrs.transpose(0, 2, 1), nbrs) / k - mean[:, :, None] * mean[:, None, :]
-    vals, vecs = np.linalg.eigh(cov)
-    roughness = float(np.median(np.sqrt(np.maximum(vals[:, 0], 0.0)))) if len(vals) else 0.0
-    return vecs[:, :, 0], roughness
+    if len(points) == 0:
+        return np.zeros((0, 3)), 0.0
+    # The six covariance entries one coordinate at a time, in local coordinates (better conditioned
+    # sums): (N, k) arrays are faster to reduce than a batched (N, 3, k) @ (N, k, 3) product.
+    x, y, z = (points[idx, c] - points[:, c, None] for c in range(3))
+    mx, my, mz = x.mean(axis=1), y.mean(axis=1), z.mean(axis=1)
+    cov = np.empty((len(points), 6))
+    cov[:, 0] = np.einsum("ij,ij->i", x, x) / idx.shape[1] - mx * mx
+    cov[:, 1] = np.einsum("ij,ij->i", y, y) / idx.shape[1] - my * my
+    cov[:, 2] = np.einsum("ij,ij->i", z, z) / idx.shape[1] - mz * mz
+    cov[:, 3] = np.einsum("ij,ij->i", x, y) / idx.shape[1] - mx * my
+    cov[:, 4] = np.einsum("ij,ij->i", x, z) / idx.shape[1] - mx * mz
+    cov[:, 5] = np.einsum("ij,ij->i", y, z) / idx.shape[1] - my * mz
+    smallest, normals = smallest_eigenpairs(cov)
+    roughness = float(np.median(np.sqrt(np.maximum(smallest, 0.0))))
+    return normals, roughness
+
+
+def smallest_eigenpairs(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest eigenvalue and its unit eigenvector of each symmetric 3x3 matrix, given as (N, 6) rows
+    (xx, yy, zz, xy, xz, yz).
+
+    Closed form, about 7x faster than a batched ``np.linalg.eigh``: the eigenvalue by the
+    trigonometric solution of the characteristic cubic (Smith 1961), the eigenvector as the longest
+    cross product of two rows of ``A - lambda I``. Where that is ill-defined (two smallest eigenvalues
+    equal to within 1e-8 of the spread: isotropic or line-like neighbourhoods, whose normal is
+    arbitrary anyway) the rows fall back to ``eigh``. Near a repeated eigenvalue the cubic's solution
+    keeps about half the digits (1e-8 of the largest eigenvalue): far below any roughness that matters.
+    """
+    a00, a11, a22, a01, a02, a12 = cov.T
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        half_det = np.where(p > 0, det / (2.0 * p ** 3), 0.0)
+    lam = q + 2.0 * p * np.cos(np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0 + 2.0 * np.pi / 3.0)
+    r0 = np.stack([a00 - lam, a01, a02], axis=1)
+    r1 = np.stack([a01, a11 - lam, a12], axis=1)
+    r2 = np.stack([a02, a12, a22 - lam], axis=1)
+    crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
+    sq = np.einsum("nij,nij->ni", crosses, crosses)
+    best = sq.argmax(axis=1)
+    rows = np.arange(len(cov))
+    length = np.sqrt(sq[rows, best])
+    vec = crosses[rows, best]
+    bad = ~(length > 1e-8 * p * p) | ~np.isfinite(length)
+    vec[~bad] /= length[~bad, None]
+    if bad.any():
+        full = np.empty((int(bad.sum()), 3, 3))
+        full[:, 0, 0], full[:, 1, 1], full[:, 2, 2] = a00[bad], a11[bad], a22[bad]
+        full[:, 0, 1] = full[:, 1, 0] = a01[bad]
+        full[:, 0, 2] = full[:, 2, 0] = a02[bad]
+        full[:, 1, 2] = full[:, 2, 1] = a12[bad]
+        vals, vecs = np.linalg.eigh(full)
+        lam[bad], vec[bad] = vals[:, 0], vecs[:, :, 0]
+    return lam, vec
 
 
 def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:

@@ -38,18 +38,35 @@ def _group_argmin(groups: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, n
 
 
 def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spacing: float,
-               spatial_weight: float, normal_weight: float, tree: cKDTree | None = None) -> coo_matrix:
-    """Weighted 26-neighbour graph: w = ws * step / seed_spacing + wn * (1 - |n_i . n_j|)."""
-    tree = tree if tree is not None else cKDTree(voxels)
-    pairs = tree.query_pairs(r=voxel * 1.8, output_type="ndarray")
-    if len(pairs) == 0:
+               spatial_weight: float, normal_weight: float, tree: cKDTree | None = None,
+               neighbours: tuple[np.ndarray, np.ndarray] | None = None) -> coo_matrix:
+    """Weighted 26-neighbour graph: w = ws * step / seed_spacing + wn * (1 - |n_i . n_j|).
+
+    ``neighbours`` (optional): sorted distances and indices of each voxel's nearest neighbours (the
+    normals' kNN query). The edges are read off them unless some voxel's farthest listed neighbour
+    still lies within the radius (it may have more: dense, volumetric clusters); then, as without
+    them, a radius query over the whole cloud finds the same edges.
+    """
+    radius = voxel * ADJACENCY_RADIUS
+    if neighbours is not None and neighbours[0].shape[1] > 1 and not (neighbours[0][:, -1] <= radius).any():
+        dist, idx = neighbours
+        rows = np.arange(len(voxels))[:, None]
+        near = (dist <= radius) & (idx > rows)
+        i, j = np.broadcast_to(rows, idx.shape)[near], idx[near]
+    else:
+        tree = tree if tree is not None else cKDTree(voxels)
+        pairs = tree.query_pairs(r=radius, output_type="ndarray")
+        i, j = (pairs[:, 0], pairs[:, 1]) if len(pairs) else (np.empty(0, np.int64), np.empty(0, np.int64))
+    if len(i) == 0:
         return coo_matrix((len(voxels), len(voxels)))
-    i, j = pairs[:, 0], pairs[:, 1]
     step = np.linalg.norm(voxels[i] - voxels[j], axis=1) / seed_spacing
     bend = 1.0 - np.abs(np.einsum("ij,ij->i", normals[i], normals[j]))
     w = spatial_weight * step + normal_weight * bend + 1e-9
     return coo_matrix((w, (i, j)), shape=(len(voxels), len(voxels)))
 
+
+#: voxels closer than this many voxel sizes are adjacent (the 26-neighbourhood: the cube's diagonal is sqrt(3))
+ADJACENCY_RADIUS = 1.8
 
 #: a voxel may seed a supervoxel when this many voxels (itself included) lie within
 #: ``SEED_SUPPORT_RADIUS`` voxel sizes of it: seeds in isolated, outlier regions are not allowed (VCCS)
@@ -92,16 +109,20 @@ def _initial_seeds(voxels: np.ndarray, seed_spacing: float, eligible_mask: np.nd
 def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spacing: float,
                 spatial_weight: float = 1.0, normal_weight: float = 1.0, iterations: int = 3,
                 min_voxels: int = 2, neighbour_distances: np.ndarray | None = None,
-                tree: cKDTree | None = None) -> Supervoxels:
+                tree: cKDTree | None = None, neighbour_indices: np.ndarray | None = None) -> Supervoxels:
     """Segment voxel centroids ``points`` (with ``normals``) into supervoxels.
 
     ``voxel`` and ``seed_spacing`` are in the cloud's own (normalised) units. ``neighbour_distances``
     (optional): sorted distances of each point's nearest neighbours, itself included, e.g. from the
-    normals' kNN query; they save the seed-support count (:func:`seed_support`). ``tree`` (optional): a
-    k-d tree over ``points``, reused for the voxel graph.
+    normals' kNN query; they save the seed-support count (:func:`seed_support`), and with
+    ``neighbour_indices`` (the same query's indices) most of the voxel graph's radius query. ``tree``
+    (optional): a k-d tree over ``points``, reused for the voxel graph.
     """
     n = len(points)
-    graph = _adjacency(points, normals, voxel, seed_spacing, spatial_weight, normal_weight, tree).tocsr()
+    listed = ((neighbour_distances, neighbour_indices)
+              if neighbour_distances is not None and neighbour_indices is not None else None)
+    graph = _adjacency(points, normals, voxel, seed_spacing, spatial_weight, normal_weight, tree,
+                       listed).tocsr()
     seeds = _initial_seeds(points, seed_spacing, seed_support(points, voxel, neighbour_distances))
     # Growth is bounded: a voxel farther than ~1.5 seed spacings (in graph distance) stays unlabelled.
     limit = 1.5 * spatial_weight + normal_weight
