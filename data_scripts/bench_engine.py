@@ -125,7 +125,9 @@ class BenchError(Exception):
 
 
 #: where bench/stages-before-speed.md comes from (the default of --stages-before-note)
-STAGES_BEFORE_NOTE = "engine of commit 087c5db, same report set, one worker"
+STAGES_BEFORE_NOTE = ("engine of commit 087c5db, same report set, one worker, run on 2026-12-01 on another machine "
+                      "(the same code has run 2x slower on another CPU: compare the shares, and the seconds only "
+                      "within one machine)")
 STAGE_CELL_RE = re.compile(r"^(\d+(?:\.\d*)?|\.\d+)\s*\(\s*\d+(?:\.\d*)?%\)$")  # "0.662 (26%)"
 
 
