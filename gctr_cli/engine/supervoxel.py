@@ -45,7 +45,9 @@ def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spaci
     ``neighbours`` (optional): sorted distances and indices of each voxel's nearest neighbours (the
     normals' kNN query). The edges are read off them unless some voxel's farthest listed neighbour
     still lies within the radius (it may have more: dense, volumetric clusters); then, as without
-    them, a radius query over the whole cloud finds the same edges.
+    them, a radius query over the whole cloud finds the same edges (barring a neighbour within one
+    rounding step of the radius: a kNN distance is a rounded square root, the radius query compares
+    squared distances).
     """
     radius = voxel * ADJACENCY_RADIUS
     if neighbours is not None and neighbours[0].shape[1] > 1 and not (neighbours[0][:, -1] <= radius).any():
