@@ -149,15 +149,16 @@ def normals_and_roughness(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarr
         return np.zeros((0, 3)), 0.0
     # The six covariance entries one coordinate at a time, in local coordinates (better conditioned
     # sums): (N, k) arrays are faster to reduce than a batched (N, 3, k) @ (N, k, 3) product.
+    k = idx.shape[1]
     x, y, z = (points[idx, c] - points[:, c, None] for c in range(3))
     mx, my, mz = x.mean(axis=1), y.mean(axis=1), z.mean(axis=1)
     cov = np.empty((len(points), 6))
-    cov[:, 0] = np.einsum("ij,ij->i", x, x) / idx.shape[1] - mx * mx
-    cov[:, 1] = np.einsum("ij,ij->i", y, y) / idx.shape[1] - my * my
-    cov[:, 2] = np.einsum("ij,ij->i", z, z) / idx.shape[1] - mz * mz
-    cov[:, 3] = np.einsum("ij,ij->i", x, y) / idx.shape[1] - mx * my
-    cov[:, 4] = np.einsum("ij,ij->i", x, z) / idx.shape[1] - mx * mz
-    cov[:, 5] = np.einsum("ij,ij->i", y, z) / idx.shape[1] - my * mz
+    cov[:, 0] = np.einsum("ij,ij->i", x, x) / k - mx * mx
+    cov[:, 1] = np.einsum("ij,ij->i", y, y) / k - my * my
+    cov[:, 2] = np.einsum("ij,ij->i", z, z) / k - mz * mz
+    cov[:, 3] = np.einsum("ij,ij->i", x, y) / k - mx * my
+    cov[:, 4] = np.einsum("ij,ij->i", x, z) / k - mx * mz
+    cov[:, 5] = np.einsum("ij,ij->i", y, z) / k - my * mz
     smallest, normals = smallest_eigenpairs(cov)
     roughness = float(np.median(np.sqrt(np.maximum(smallest, 0.0))))
     return normals, roughness

@@ -37,6 +37,10 @@ def _group_argmin(groups: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, n
     return g_sorted[first], order[first]
 
 
+#: voxels closer than this many voxel sizes are adjacent (the 26-neighbourhood: the cube's diagonal is sqrt(3))
+ADJACENCY_RADIUS = 1.8
+
+
 def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spacing: float,
                spatial_weight: float, normal_weight: float, tree: cKDTree | None = None,
                neighbours: tuple[np.ndarray, np.ndarray] | None = None) -> coo_matrix:
@@ -66,9 +70,6 @@ def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spaci
     w = spatial_weight * step + normal_weight * bend + 1e-9
     return coo_matrix((w, (i, j)), shape=(len(voxels), len(voxels)))
 
-
-#: voxels closer than this many voxel sizes are adjacent (the 26-neighbourhood: the cube's diagonal is sqrt(3))
-ADJACENCY_RADIUS = 1.8
 
 #: a voxel may seed a supervoxel when this many voxels (itself included) lie within
 #: ``SEED_SUPPORT_RADIUS`` voxel sizes of it: seeds in isolated, outlier regions are not allowed (VCCS)
