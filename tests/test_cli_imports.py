@@ -19,7 +19,10 @@ from conftest import REPO, write_cloud
 #: never needed to register one pair with the GCTR engine (the default method)
 NOT_FOR_REGISTER = ("open3d", "dask", "distributed", "matplotlib", "tqdm", "pandas", "yaml", "gctr_cli.batch",
                     "gctr_cli.report", "gctr_cli.summary", "gctr_cli.snapshots", "gctr_cli.pool",
-                    "gctr_cli.dask_executor", "gctr_cli.baselines")
+                    "gctr_cli.dask_executor", "gctr_cli.baselines",
+                    # scipy: only the k-d tree and Dijkstra, not the rest of their packages (scipy_parts)
+                    "scipy.linalg", "scipy.special", "scipy.sparse.linalg", "scipy.spatial.transform",
+                    "scipy.spatial._qhull", "scipy.spatial.distance")
 NOT_FOR_HELP = ("numpy", "scipy", "pydantic", "yaml", "gctr_cli.config", "gctr_cli.io", "gctr_cli.engine")
 
 
@@ -62,6 +65,26 @@ def test_register_imports_only_what_it_uses(pair, tmp_path):
     assert code in (0, 1)  # the registration's outcome does not matter here, the import set does
     assert "gctr_cli.engine" in modules and "gctr_cli.pair" in modules  # it did run the engine
     assert _loaded(modules, NOT_FOR_REGISTER) == []
+    # the two packages' __init__ never ran; their compiled parts the engine uses did load
+    assert {"scipy.spatial", "scipy.sparse.csgraph"} & modules == set()
+    assert {"scipy.spatial._ckdtree", "scipy.sparse.csgraph._shortest_path"} <= modules
+
+
+def test_scipy_parts_are_scipys_own_objects():
+    """After the lean import, a full ``import scipy.spatial`` elsewhere in the process gets the same
+    classes (no second copy of the extension), and they work."""
+    script = textwrap.dedent("""
+        from gctr_cli.engine.scipy_parts import cKDTree, dijkstra
+        import numpy as np, scipy.spatial, scipy.sparse.csgraph
+        assert scipy.spatial.cKDTree is cKDTree and scipy.sparse.csgraph.dijkstra is dijkstra
+        assert scipy.spatial.ConvexHull is not None  # the real __init__ ran
+        d, i = cKDTree(np.eye(3)).query([0.9, 0.1, 0.0])
+        print(int(i), round(float(d), 6))
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["0", "0.141421"]
 
 
 def test_help_is_light(tmp_path):

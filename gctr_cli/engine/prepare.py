@@ -10,11 +10,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine.preprocess import downsample_to, nearest_neighbours, normals_and_roughness
 from gctr_cli.engine.ransac import OccupancyGrid
+from gctr_cli.engine.scipy_parts import cKDTree
 from gctr_cli.engine.supervoxel import supervoxels
 from gctr_cli.engine.verdict import Surface
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from gctr_cli.engine.scipy_parts import cKDTree
 
 
 class DegenerateCloudError(ValueError):

@@ -14,8 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from gctr_cli.engine.scipy_parts import cKDTree
 from gctr_cli.engine.similarity import batched_umeyama, umeyama
 
 

@@ -14,10 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
-from scipy.spatial import cKDTree
 
 from gctr_cli.engine.preprocess import voxel_keys
+from gctr_cli.engine.scipy_parts import cKDTree, dijkstra
 
 
 @dataclass(frozen=True)

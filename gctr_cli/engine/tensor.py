@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from gctr_cli.engine.scipy_parts import cKDTree
 
 #: leaf size of the descriptor-space k-d tree (scipy's default 16 is slower for k = 50 in 6-D)
 KNN_LEAF_SIZE = 32
