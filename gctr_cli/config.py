@@ -99,8 +99,12 @@ class OuterLoopConfig(_Strict):
         2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
     settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
     settle_alone: float = Field(
-        0.6, ge=0, le=1, description="stop the search after a hypothesis, and its outer loop after a round, "
-                                     "whose surface agreement reaches this; 1 = never")
+        0.6, ge=0, le=1, description="stop the search after a hypothesis whose surface agreement reaches this; "
+                                     "1 = never")
+    settle_round: float = Field(
+        0.5, ge=0, le=1, description="stop a hypothesis' outer loop after a round whose best surface agreement "
+                                     "reaches this (later rounds only polish what the verdict's ICP refines); "
+                                     "1 = never")
 
 
 class RefineConfig(_Strict):

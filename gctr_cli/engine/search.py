@@ -140,9 +140,9 @@ def outer_loop(src: PreparedCloud, tgt: PreparedCloud, H3: SparseTensor3, overla
         timer.add("similarity", t)
         # Converged when the salient points stop moving (RMS displacement, normalised units), or
         # settled: this round's best hypothesis already explains so much of both clouds
-        # (``outer.settle_alone``) that further rounds would only polish what the verdict's ICP refines.
+        # (``outer.settle_round``) that further rounds would only polish what the verdict's ICP refines.
         converged = T is not None and displacement(T_new, T, S) < cfg.outer.tol
-        settled_now = max(a.score for _, a in finalists) >= cfg.outer.settle_alone
+        settled_now = max(a.score for _, a in finalists) >= cfg.outer.settle_round
         T, n_inliers = T_new, rr.n_inliers
         if converged or settled_now:
             break
