@@ -3,8 +3,8 @@
 ``from scipy.spatial import cKDTree`` runs ``scipy/spatial/__init__.py``, which also loads Qhull,
 the distance functions (and with them ``scipy.special``) and ``scipy.spatial.transform`` (and
 ``scipy.linalg``); ``from scipy.sparse.csgraph import dijkstra`` loads the graph Laplacian and with
-it ``scipy.sparse.linalg``. The engine needs none of them, and on one core they cost `gctr register`
-about 0.1 s of import time, a tenth of the whole command (bench/PROCESS.md).
+it ``scipy.sparse.linalg``. The engine needs none of them; on one core they cost ``gctr register``
+about 0.14 s of import time (0.62 -> 0.48 s in bench/PROCESS.md), a seventh of the whole command.
 
 :func:`_submodule` loads just the compiled submodule: while it imports, a bare stand-in for the
 package (its directory, no ``__init__``) sits in ``sys.modules``; afterwards the stand-in is removed
