@@ -107,18 +107,20 @@ def bunny_case(seed: int) -> Case:
 
 
 @functools.cache
-def dragon_case(seed: int = 101) -> Case:
-    """Cross-source: both clouds cropped by planes (~80% kept), target at 1/4 density with 0.5% noise
-    (of the model's diagonal) and 10% uniform outliers in its bounding box."""
+def dragon_case(seed: int = 101, noise: float = 0.005, outliers: bool = True) -> Case:
+    """Cross-source: both clouds cropped by planes (~80% kept), target at 1/4 density with ``noise``
+    (of the model's diagonal; 0.5% by default) and, with ``outliers``, 10% uniform outliers in its
+    bounding box."""
     rng = np.random.default_rng(seed)
     model = _model("dragon")
     diag = bbox_diagonal(model)
     src = plane_crop(model, rng)
     tgt = plane_crop(model, rng)
     tgt = tgt[np.sort(rng.choice(len(tgt), len(tgt) // 4, replace=False))]
-    tgt = tgt + rng.normal(scale=0.005 * diag, size=tgt.shape)
-    outliers = rng.uniform(tgt.min(axis=0), tgt.max(axis=0), size=(len(tgt) // 10, 3))
-    tgt = np.vstack([tgt, outliers])[rng.permutation(len(tgt) + len(outliers))]
+    tgt = tgt + rng.normal(scale=noise * diag, size=tgt.shape)
+    if outliers:
+        extra = rng.uniform(tgt.min(axis=0), tgt.max(axis=0), size=(len(tgt) // 10, 3))
+        tgt = np.vstack([tgt, extra])[rng.permutation(len(tgt) + len(extra))]
     T = random_similarity(rng, diag)
     return Case(src, apply(T, tgt), T)
 
@@ -174,19 +176,12 @@ def test_settled_round_ends_the_outer_loop():
 
 
 def test_settle_round_default_saves_rounds_on_noisy_pairs(monkeypatch):
-    """Noisy cross-source pairs settle below 0.6: on a 1%-noise dragon crop at 1/4 density the round
-    threshold 0.5 (the default) runs a third of the outer rounds of 0.6 and gives the same answer
+    """Noisy cross-source pairs settle below 0.6: on a 1%-noise dragon crop at 1/4 density (no outliers)
+    the round threshold 0.5 (the default) runs a third of the outer rounds of 0.6 and gives the same answer
     (every outer round runs one power iteration; they are counted over all overlap hypotheses)."""
     import gctr_cli.engine.search as search_module
 
-    rng = np.random.default_rng(5)
-    model = _model("dragon")
-    diag = bbox_diagonal(model)
-    src, tgt = plane_crop(model, rng), plane_crop(model, rng)
-    tgt = tgt[rng.choice(len(tgt), len(tgt) // 4, replace=False)]
-    tgt = tgt + rng.normal(scale=0.01 * diag, size=tgt.shape)
-    T = random_similarity(rng, diag)
-    case = Case(src, apply(T, tgt), T)
+    case = dragon_case(5, noise=0.01, outliers=False)
     rounds: list[int] = []
     original = search_module.power_iteration
 
