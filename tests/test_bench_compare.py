@@ -308,3 +308,41 @@ def test_one_core_pins_the_run_and_restores_the_affinity():
     assert os.sched_getaffinity(0) == before
     with bc.one_core(False) as cpu:
         assert cpu is None and os.sched_getaffinity(0) == before
+
+
+def test_median_ratio_spread_exact_and_on_a_gap():
+    """The firmness of the median-time comparison: exact when one method is always twice as slow; a wide
+    interval when the first method's median sits on the gap between a fast and a slow group of pairs."""
+
+    def rows(times_a, times_b):
+        return ([{"method": "a", "pair_id": f"p{i}", "runtime_s": t} for i, t in enumerate(times_a)]
+                + [{"method": "b", "pair_id": f"p{i}", "runtime_s": t} for i, t in enumerate(times_b)])
+
+    b = [0.5 + 0.01 * i for i in range(40)]
+    sp = bc.median_ratio_spread(rows([2 * t for t in b], b), "a", "b", resamples=500)
+    assert sp["pairs"] == 40
+    assert sp["ratio"] == pytest.approx(2.0) and sp["mean_ratio"] == pytest.approx(2.0)
+    assert sp["low"] == pytest.approx(2.0) and sp["high"] == pytest.approx(2.0)
+    assert sp["faster_share"] == 0.0
+    # 21 fast pairs at 0.6 s and 20 slow ones at 2 s against a steady 0.62 s: a is faster at the median
+    # (ratio 0.97), but a resample with a few fast pairs fewer puts its median among the slow ones.
+    gap = rows([0.6] * 21 + [2.0] * 20, [0.62] * 41)
+    sp = bc.median_ratio_spread(gap + [{"method": "a", "pair_id": "only_a", "runtime_s": 9.0}], "a", "b")
+    assert sp["pairs"] == 41 and sp["ratio"] == pytest.approx(0.6 / 0.62)
+    assert sp["low"] == pytest.approx(0.6 / 0.62) and sp["high"] == pytest.approx(2.0 / 0.62)
+    assert sp["faster_share"] == pytest.approx(21 / 41)
+    assert sp["mean_ratio"] == pytest.approx((21 * 0.6 + 20 * 2.0) / 41 / 0.62)
+    assert bc.median_ratio_spread(gap, "a", "missing") == {}
+
+
+def test_miss_breakdown_separates_refused_from_wrong_answers():
+    """A refused pair has no matrix (infinite errors): it is counted as refused, never as a wrong coarse match."""
+    th = {"rotation_deg": 5.0, "translation_rel": 0.05, "scale": 0.05}
+    inf = math.inf
+    refused = {"status": "failed", "rot_err_deg": inf, "trans_err_rel": inf, "scale_err": inf}
+    coarse = {"status": "ok", "rot_err_deg": 40.0, "trans_err_rel": 0.3, "scale_err": 0.01}
+    near = {"status": "ok", "rot_err_deg": 5.5, "trans_err_rel": 0.01, "scale_err": 0.06}
+    assert bc.miss_breakdown([refused, refused], th) == "2 refused, none answered wrongly"
+    assert bc.miss_breakdown([refused, coarse, near], th) == (
+        "1 refused, 2 answered wrongly: over the threshold in rotation 2, translation 1, scale 1; 1 with a "
+        "rotation error ≥ 10°, i.e. a wrong coarse match, the others near misses")
