@@ -22,7 +22,9 @@ NOT_FOR_REGISTER = ("open3d", "dask", "distributed", "matplotlib", "tqdm", "pand
                     "gctr_cli.dask_executor", "gctr_cli.baselines",
                     # scipy: only the k-d tree and Dijkstra, not the rest of their packages (scipy_parts)
                     "scipy.linalg", "scipy.special", "scipy.sparse.linalg", "scipy.spatial.transform",
-                    "scipy.spatial._qhull", "scipy.spatial.distance")
+                    "scipy.spatial._qhull", "scipy.spatial.distance",
+                    # numpy: what scipy's `from numpy import *` would load and nothing uses (scipy_parts)
+                    "numpy.f2py", "numpy.testing")
 NOT_FOR_HELP = ("numpy", "scipy", "pydantic", "yaml", "gctr_cli.config", "gctr_cli.io", "gctr_cli.engine")
 
 
@@ -85,6 +87,46 @@ def test_scipy_parts_are_scipys_own_objects():
                          env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.split() == ["0", "0.141421"]
+
+
+def test_lean_scipy_sparse_leaves_numpy_whole():
+    """The stand-ins for numpy.f2py and numpy.testing during scipy.sparse's import leave no trace: both
+    load for real afterwards, scipy's compatibility namespace does not hold the stand-ins, and
+    Dijkstra (which checks for numpy.ma arrays) and coo_matrix work."""
+    script = textwrap.dedent("""
+        import sys
+        from gctr_cli.engine.scipy_parts import coo_matrix, dijkstra
+        assert "numpy.f2py" not in sys.modules and "numpy.testing" not in sys.modules
+        import numpy as np
+        np.testing.assert_allclose([1.0], [1.0])
+        import numpy.f2py
+        assert callable(numpy.f2py.run_main) and "numpy.testing" in sys.modules
+        import scipy._lib.array_api_compat.numpy as compat
+        assert not hasattr(compat, "f2py") and not hasattr(compat, "testing")
+        exec("from scipy._lib.array_api_compat.numpy import *", {})
+        graph = coo_matrix(([1.0, 2.0], ([0, 1], [1, 2])), shape=(3, 3)).tocsr()
+        print(dijkstra(graph, directed=False, indices=[0]).ravel().tolist())
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["[0.0,", "1.0,", "3.0]"]
+
+
+def test_lean_scipy_sparse_after_numpy_testing():
+    """With numpy.testing already loaded (a test runner, a notebook) the normal import runs and the
+    objects are scipy's own."""
+    script = textwrap.dedent("""
+        import numpy.testing, scipy.sparse.csgraph
+        from gctr_cli.engine.scipy_parts import coo_matrix, dijkstra
+        import scipy.sparse
+        assert coo_matrix is scipy.sparse.coo_matrix and dijkstra is scipy.sparse.csgraph.dijkstra
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["ok"]
 
 
 def test_help_is_light(tmp_path):

@@ -1,4 +1,4 @@
-"""The two scipy objects the engine uses, imported without the rest of their packages.
+"""The three scipy objects the engine uses, imported without the rest of their packages.
 
 ``from scipy.spatial import cKDTree`` runs ``scipy/spatial/__init__.py``, which also loads Qhull,
 the distance functions (and with them ``scipy.special``) and ``scipy.spatial.transform`` (and
@@ -12,6 +12,17 @@ and the submodule stays registered under its real name. A later ``import scipy.s
 the process runs the real ``__init__``, which picks up the already loaded submodule, so
 ``scipy.spatial.cKDTree is cKDTree`` holds (a test checks it). If the package is already imported,
 or the shortcut fails for any reason (a scipy that moved these modules), the normal import is used.
+
+:func:`_import_scipy_sparse` imports ``scipy.sparse`` (Dijkstra and the engine's ``coo_matrix`` need
+it) without two numpy submodules nothing here uses. scipy.sparse (scipy 1.17 here) pulls in its vendored
+``array_api_compat.numpy``, which copies numpy's namespace with ``from numpy import *``; that loads
+every lazily imported numpy submodule, among them ``numpy.f2py`` (the Fortran wrapper generator, with
+``charset_normalizer``) and ``numpy.testing`` (with ``unittest``): 58 modules and 0.04-0.12 s of a
+0.45-0.65 s import on one core of this machine (median of 8 alternating runs about 0.08 s). While
+scipy.sparse imports, bare stand-ins take their place; afterwards the stand-ins are removed from
+``sys.modules``, from numpy's namespace and from the compatibility module's (and its ``__all__``), so a later
+``numpy.testing`` or ``import numpy.f2py`` anywhere in the process loads the real ones (a test checks
+it).
 """
 
 from __future__ import annotations
@@ -21,6 +32,46 @@ import sys
 import types
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+#: numpy submodules that ``from numpy import *`` loads and neither scipy.sparse nor the engine uses
+_UNUSED_NUMPY_SUBMODULES = ("f2py", "testing")
+
+
+def _import_scipy_sparse() -> None:
+    """Import ``scipy.sparse`` without loading :data:`_UNUSED_NUMPY_SUBMODULES` (see the module
+    docstring); the normal import if scipy.sparse or one of them is already loaded, or if anything
+    goes wrong."""
+    import numpy
+
+    names = [n for n in _UNUSED_NUMPY_SUBMODULES if f"numpy.{n}" not in sys.modules]
+    if "scipy.sparse" in sys.modules or len(names) < len(_UNUSED_NUMPY_SUBMODULES):
+        importlib.import_module("scipy.sparse")
+        return
+    stand_ins = {n: types.ModuleType(f"numpy.{n}") for n in names}
+    try:
+        for n, stand_in in stand_ins.items():
+            sys.modules[f"numpy.{n}"] = stand_in
+            setattr(numpy, n, stand_in)
+        importlib.import_module("scipy.sparse")
+    except Exception:  # noqa: BLE001 - a scipy that needs them at import: the normal import below
+        pass
+    finally:
+        for n, stand_in in stand_ins.items():
+            if sys.modules.get(f"numpy.{n}") is stand_in:
+                del sys.modules[f"numpy.{n}"]
+            if numpy.__dict__.get(n) is stand_in:
+                delattr(numpy, n)
+        for module in list(sys.modules.values()):
+            namespace = getattr(module, "__dict__", None)
+            if namespace is None or not str(getattr(module, "__name__", "")).startswith("scipy."):
+                continue
+            for n, stand_in in stand_ins.items():
+                if namespace.get(n) is stand_in:
+                    del namespace[n]
+                    exported = namespace.get("__all__")
+                    if isinstance(exported, list) and n in exported:
+                        exported.remove(n)
+    importlib.import_module("scipy.sparse")  # a no-op when the import above succeeded
 
 
 def _submodule(package: str, name: str, attribute: str) -> Any:
@@ -43,10 +94,14 @@ def _submodule(package: str, name: str, attribute: str) -> Any:
 
 
 if TYPE_CHECKING:
+    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
     from scipy.spatial import cKDTree
 else:
+    _import_scipy_sparse()
+    from scipy.sparse import coo_matrix
+
     cKDTree = _submodule("scipy.spatial", "_ckdtree", "cKDTree")
     dijkstra = _submodule("scipy.sparse.csgraph", "_shortest_path", "dijkstra")
 
-__all__ = ["cKDTree", "dijkstra"]
+__all__ = ["cKDTree", "coo_matrix", "dijkstra"]

@@ -13,10 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
 
 from gctr_cli.engine.preprocess import voxel_keys
-from gctr_cli.engine.scipy_parts import cKDTree, dijkstra
+from gctr_cli.engine.scipy_parts import cKDTree, coo_matrix, dijkstra
 
 
 @dataclass(frozen=True)
