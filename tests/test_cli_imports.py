@@ -129,6 +129,26 @@ def test_lean_scipy_sparse_after_numpy_testing():
     assert out.stdout.split() == ["ok"]
 
 
+def test_lean_scipy_sparse_not_with_other_threads():
+    """With another thread running, the stand-ins are not used (that thread could pick one up): the
+    normal import runs, numpy.testing loads with it and another thread's import sees the real one."""
+    script = textwrap.dedent("""
+        import sys, threading
+        stop = threading.Event()
+        worker = threading.Thread(target=stop.wait)
+        worker.start()
+        from gctr_cli.engine.scipy_parts import dijkstra
+        stop.set(); worker.join()
+        import scipy._lib.array_api_compat.numpy as compat
+        from numpy.testing import assert_allclose
+        print("numpy.testing" in sys.modules, compat.testing is sys.modules["numpy.testing"])
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["True", "True"]
+
+
 def test_help_is_light(tmp_path):
     code, modules = _modules_after(["--help"], tmp_path)
     assert code == 0

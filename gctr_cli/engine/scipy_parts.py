@@ -22,13 +22,17 @@ every lazily imported numpy submodule, among them ``numpy.f2py`` (the Fortran wr
 scipy.sparse imports, bare stand-ins take their place; afterwards the stand-ins are removed from
 ``sys.modules``, from numpy's namespace and from the compatibility module's (and its ``__all__``), so a later
 ``numpy.testing`` or ``import numpy.f2py`` anywhere in the process loads the real ones (a test checks
-it).
+it). What remains different: scipy's private ``array_api_compat.numpy`` namespace has no ``testing``
+and ``f2py`` (scipy 1.17 reads them only for CuPy and torch arrays). The shortcut is taken only in a
+process with a single thread (``gctr register``, the pool's spawned workers): other threads would see
+the stand-ins while scipy.sparse imports.
 """
 
 from __future__ import annotations
 
 import importlib
 import sys
+import threading
 import types
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -44,7 +48,9 @@ def _import_scipy_sparse() -> None:
     import numpy
 
     names = [n for n in _UNUSED_NUMPY_SUBMODULES if f"numpy.{n}" not in sys.modules]
-    if "scipy.sparse" in sys.modules or len(names) < len(_UNUSED_NUMPY_SUBMODULES):
+    # Other threads would see the stand-ins while scipy.sparse imports: only when there are none.
+    if ("scipy.sparse" in sys.modules or len(names) < len(_UNUSED_NUMPY_SUBMODULES)
+            or threading.active_count() > 1):
         importlib.import_module("scipy.sparse")
         return
     stand_ins = {n: types.ModuleType(f"numpy.{n}") for n in names}
@@ -61,9 +67,11 @@ def _import_scipy_sparse() -> None:
                 del sys.modules[f"numpy.{n}"]
             if numpy.__dict__.get(n) is stand_in:
                 delattr(numpy, n)
-        for module in list(sys.modules.values()):
+        for name, module in list(sys.modules.items()):
+            if not name.startswith("scipy."):  # by key: touching a lazily loaded module would load it
+                continue
             namespace = getattr(module, "__dict__", None)
-            if namespace is None or not str(getattr(module, "__name__", "")).startswith("scipy."):
+            if namespace is None:
                 continue
             for n, stand_in in stand_ins.items():
                 if namespace.get(n) is stand_in:
