@@ -47,6 +47,15 @@ def _modules_after(argv: list[str], tmp_path) -> tuple[int, set[str]]:
     return data["code"], set(data["modules"])
 
 
+def _run_script(script: str) -> list[str]:
+    """Run ``script`` in a fresh interpreter (the repository on the path, one BLAS thread); its
+    output split into words. Fails the test if the script fails."""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout.split()
+
+
 def _loaded(modules: set[str], names: tuple[str, ...]) -> list[str]:
     return sorted(m for m in modules if any(m == n or m.startswith(n + ".") for n in names))
 
@@ -83,10 +92,7 @@ def test_scipy_parts_are_scipys_own_objects():
         d, i = cKDTree(np.eye(3)).query([0.9, 0.1, 0.0])
         print(int(i), round(float(d), 6))
     """)
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
-                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split() == ["0", "0.141421"]
+    assert _run_script(script) == ["0", "0.141421"]
 
 
 def test_lean_scipy_sparse_leaves_numpy_whole():
@@ -107,10 +113,7 @@ def test_lean_scipy_sparse_leaves_numpy_whole():
         graph = coo_matrix(([1.0, 2.0], ([0, 1], [1, 2])), shape=(3, 3)).tocsr()
         print(dijkstra(graph, directed=False, indices=[0]).ravel().tolist())
     """)
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
-                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split() == ["[0.0,", "1.0,", "3.0]"]
+    assert _run_script(script) == ["[0.0,", "1.0,", "3.0]"]
 
 
 def test_lean_scipy_sparse_after_numpy_testing():
@@ -123,10 +126,7 @@ def test_lean_scipy_sparse_after_numpy_testing():
         assert coo_matrix is scipy.sparse.coo_matrix and dijkstra is scipy.sparse.csgraph.dijkstra
         print("ok")
     """)
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
-                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split() == ["ok"]
+    assert _run_script(script) == ["ok"]
 
 
 def test_lean_scipy_sparse_not_with_other_threads():
@@ -143,10 +143,7 @@ def test_lean_scipy_sparse_not_with_other_threads():
         from numpy.testing import assert_allclose
         print("numpy.testing" in sys.modules, compat.testing is sys.modules["numpy.testing"])
     """)
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
-                         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split() == ["True", "True"]
+    assert _run_script(script) == ["True", "True"]
 
 
 def test_help_is_light(tmp_path):

@@ -34,6 +34,8 @@ import importlib
 import sys
 import threading
 import types
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,38 +43,45 @@ from typing import TYPE_CHECKING, Any
 _UNUSED_NUMPY_SUBMODULES = ("f2py", "testing")
 
 
+@contextmanager
+def _standing_in(stand_ins: dict[str, types.ModuleType]) -> Iterator[None]:
+    """Register ``stand_ins`` (module name -> bare module) in ``sys.modules`` for the ``with`` block;
+    afterwards remove each one that is still there."""
+    sys.modules.update(stand_ins)
+    try:
+        yield
+    finally:
+        for name, stand_in in stand_ins.items():
+            if sys.modules.get(name) is stand_in:
+                del sys.modules[name]
+
+
 def _import_scipy_sparse() -> None:
     """Import ``scipy.sparse`` without loading :data:`_UNUSED_NUMPY_SUBMODULES` (see the module
-    docstring); the normal import if scipy.sparse or one of them is already loaded, or if anything
-    goes wrong."""
+    docstring); the normal import if scipy.sparse or one of them is already loaded, if another thread
+    runs (it would see the stand-ins), or if anything goes wrong."""
     import numpy
 
-    names = [n for n in _UNUSED_NUMPY_SUBMODULES if f"numpy.{n}" not in sys.modules]
-    # Other threads would see the stand-ins while scipy.sparse imports: only when there are none.
-    if ("scipy.sparse" in sys.modules or len(names) < len(_UNUSED_NUMPY_SUBMODULES)
-            or threading.active_count() > 1):
+    if ("scipy.sparse" in sys.modules or threading.active_count() > 1
+            or any(f"numpy.{n}" in sys.modules for n in _UNUSED_NUMPY_SUBMODULES)):
         importlib.import_module("scipy.sparse")
         return
-    stand_ins = {n: types.ModuleType(f"numpy.{n}") for n in names}
+    stand_ins = {n: types.ModuleType(f"numpy.{n}") for n in _UNUSED_NUMPY_SUBMODULES}
     try:
-        for n, stand_in in stand_ins.items():
-            sys.modules[f"numpy.{n}"] = stand_in
-            setattr(numpy, n, stand_in)
-        importlib.import_module("scipy.sparse")
+        with _standing_in({f"numpy.{n}": m for n, m in stand_ins.items()}):
+            for n, stand_in in stand_ins.items():
+                setattr(numpy, n, stand_in)
+            importlib.import_module("scipy.sparse")
     except Exception:  # noqa: BLE001 - a scipy that needs them at import: the normal import below
         pass
     finally:
         for n, stand_in in stand_ins.items():
-            if sys.modules.get(f"numpy.{n}") is stand_in:
-                del sys.modules[f"numpy.{n}"]
             if numpy.__dict__.get(n) is stand_in:
                 delattr(numpy, n)
         for name, module in list(sys.modules.items()):
             if not name.startswith("scipy."):  # by key: touching a lazily loaded module would load it
                 continue
-            namespace = getattr(module, "__dict__", None)
-            if namespace is None:
-                continue
+            namespace = vars(module) if hasattr(module, "__dict__") else {}
             for n, stand_in in stand_ins.items():
                 if namespace.get(n) is stand_in:
                     del namespace[n]
@@ -90,12 +99,8 @@ def _submodule(package: str, name: str, attribute: str) -> Any:
             parent = importlib.import_module(parent_name)
             stand_in = types.ModuleType(package)
             stand_in.__path__ = [str(Path(parent.__file__ or "").parent / leaf)]
-            sys.modules[package] = stand_in
-            try:
+            with _standing_in({package: stand_in}):
                 return getattr(importlib.import_module(f"{package}.{name}"), attribute)
-            finally:
-                if sys.modules.get(package) is stand_in:
-                    del sys.modules[package]
         except (ImportError, AttributeError):
             pass
     return getattr(importlib.import_module(package), attribute)
