@@ -14,7 +14,8 @@ Steps:
    the first of each, identical to the full run's. Skipped when ``<work>/data`` already holds
    the output of the same command. The pairs and the success thresholds (``success:`` of the default
    config) are fixed before any method runs.
-2. **Runs.** For every method and level, the user-facing command
+2. **Runs.** Level by level (every method on a level before the next level, the methods' order
+   reversed on every second level: :func:`batch_order`), for every method the user-facing command
    ``gctr batch <work>/data/<level>/pairs.csv -c <work>/configs/<method>.yaml -o <work>/results/<method>/<level>
    -j J -q`` where the config is the default one with ``method:`` set: the rows are the same
    ``transforms.csv`` / ``tm_errors.csv`` users get.
@@ -363,14 +364,30 @@ def one_core(enabled: bool) -> Iterator[int | None]:
         os.sched_setaffinity(0, before)
 
 
+def batch_order(methods: Sequence[str], levels: Sequence[str]) -> list[tuple[str, str]]:
+    """(method, level) in the order the batches run: level by level, every method on a level before
+    the next level, the methods' order reversed on every second level.
+
+    The machine's speed drifts (a shared host: the same code has run 1.5x slower an hour later), so
+    methods run one after the other over the whole set would each meet a different machine. Level by
+    level, the methods compared on a level run within minutes of each other, and the alternating order
+    puts no method always first or always last."""
+    order: list[tuple[str, str]] = []
+    for i, level in enumerate(levels):
+        for method in (methods if i % 2 == 0 else list(reversed(methods))):
+            order.append((method, level))
+    return order
+
+
 def run_batches(settings: Settings, work: Path, data: Path) -> tuple[list[BatchRun], list[BatchRun]]:
-    """Every method on every level, then the ablations; returns (runs, ablation runs)."""
+    """Every method on every level (:func:`batch_order`), then the ablations; returns (runs, ablation runs)."""
     runs: list[BatchRun] = []
+    configs = {}
     for method in settings.methods:
-        config = work / "configs" / f"{method}.yaml"
-        write_method_config(config, method)
-        for level in settings.levels:
-            runs.append(run_one_batch(method, level, config, settings, work, data))
+        configs[method] = work / "configs" / f"{method}.yaml"
+        write_method_config(configs[method], method)
+    for method, level in batch_order(settings.methods, settings.levels):
+        runs.append(run_one_batch(method, level, configs[method], settings, work, data))
     ablations: list[BatchRun] = []
     for name, method, overrides, level in ABLATIONS if settings.mode == "full" else ():
         if method in settings.methods and level in settings.levels:
@@ -743,7 +760,7 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
                 f"for {s['workers']} worker(s) of this benchmark on {info['usable_cores']} cores.")
         if mean_load > s["workers"] + 0.5:
             line += (" **Other processes were competing for the cores: the wall-clock times per pair are inflated, "
-                     "and since the methods ran one after the other, not necessarily by the same factor for each "
+                     "and not necessarily by the same factor for each method "
                      "(see the load before/after each batch in run.json); the CPU column is not inflated by the "
                      "load.**")
         L.append(line)
@@ -762,7 +779,12 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
              f"translation < {succ['translation_rel']:g} × target bounding-box diagonal, "
              f"scale error < {succ['scale']:g}. "
              "Every method ran through `gctr batch` with the default config and `method:` set "
-             f"(`-j {s['workers']}`); rows are the batch runner's `transforms.csv` / `tm_errors.csv`.")
+             f"(`-j {s['workers']}`); rows are the batch runner's `transforms.csv` / `tm_errors.csv`. "
+             + ("The batches ran level by level: every method on a level before the next level, the methods' "
+                "order reversed on every second level, so that the methods compared on a level met the same "
+                "state of the machine (its speed drifts over an hour)."
+                if meta.get("batch_order") == "by level" else
+                "The batches ran method by method (each method over every level, one method after the other)."))
     L.append("")
 
     L.extend(render_verdicts(rows, methods, levels, meta.get("min_confidence")))
@@ -1277,6 +1299,7 @@ def main(argv: list[str] | None = None) -> int:
         "total_wall_s": time.monotonic() - t0,
         "work_rel": _rel(work),
         "pinned_cpu": pinned_cpu,
+        "batch_order": "by level",  # batch_order(): level by level, the methods' order alternating
     }
     meta_path.write_text(json.dumps({"meta": meta, "runs": [asdict(r) for r in runs],
                                      "ablations": [asdict(r) for r in ablation_runs], "profile": profile}, indent=1))

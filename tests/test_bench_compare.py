@@ -346,3 +346,13 @@ def test_miss_breakdown_separates_refused_from_wrong_answers():
     assert bc.miss_breakdown([refused, coarse, near], th) == (
         "1 refused, 2 answered wrongly: over the threshold in rotation 2, translation 1, scale 1; 1 with a "
         "rotation error ≥ 10°, i.e. a wrong coarse match, the others near misses")
+
+
+def test_batch_order_runs_level_by_level_alternating_the_methods():
+    """Every method on a level before the next level, the methods' order reversed on every second
+    level: methods compared on a level meet the same state of a drifting machine, none always first."""
+    order = bc.batch_order(["gctr", "kiss_matcher", "icp"], ["easy", "hard", "part"])
+    assert order == [("gctr", "easy"), ("kiss_matcher", "easy"), ("icp", "easy"),
+                     ("icp", "hard"), ("kiss_matcher", "hard"), ("gctr", "hard"),
+                     ("gctr", "part"), ("kiss_matcher", "part"), ("icp", "part")]
+    assert sorted(order) == sorted((m, lv) for m in ["gctr", "kiss_matcher", "icp"] for lv in ["easy", "hard", "part"])
