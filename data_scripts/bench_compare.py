@@ -364,6 +364,10 @@ def one_core(enabled: bool) -> Iterator[int | None]:
         os.sched_setaffinity(0, before)
 
 
+#: run.json's name for the order of :func:`batch_order` (older runs, without it, ran method by method)
+BATCH_ORDER = "by level"
+
+
 def batch_order(methods: Sequence[str], levels: Sequence[str]) -> list[tuple[str, str]]:
     """(method, level) in the order the batches run: level by level, every method on a level before
     the next level, the methods' order reversed on every second level.
@@ -372,20 +376,16 @@ def batch_order(methods: Sequence[str], levels: Sequence[str]) -> list[tuple[str
     methods run one after the other over the whole set would each meet a different machine. Level by
     level, the methods compared on a level run within minutes of each other, and the alternating order
     puts no method always first or always last."""
-    order: list[tuple[str, str]] = []
-    for i, level in enumerate(levels):
-        for method in (methods if i % 2 == 0 else list(reversed(methods))):
-            order.append((method, level))
-    return order
+    return [(method, level) for i, level in enumerate(levels)
+            for method in (methods if i % 2 == 0 else methods[::-1])]
 
 
 def run_batches(settings: Settings, work: Path, data: Path) -> tuple[list[BatchRun], list[BatchRun]]:
     """Every method on every level (:func:`batch_order`), then the ablations; returns (runs, ablation runs)."""
     runs: list[BatchRun] = []
-    configs = {}
-    for method in settings.methods:
-        configs[method] = work / "configs" / f"{method}.yaml"
-        write_method_config(configs[method], method)
+    configs = {method: work / "configs" / f"{method}.yaml" for method in settings.methods}
+    for method, config in configs.items():
+        write_method_config(config, method)
     for method, level in batch_order(settings.methods, settings.levels):
         runs.append(run_one_batch(method, level, configs[method], settings, work, data))
     ablations: list[BatchRun] = []
@@ -783,7 +783,7 @@ def render_report(meta: dict[str, Any], rows, stats, goals, runs: list[BatchRun]
              + ("The batches ran level by level: every method on a level before the next level, the methods' "
                 "order reversed on every second level, so that the methods compared on a level met the same "
                 "state of the machine (its speed drifts over an hour)."
-                if meta.get("batch_order") == "by level" else
+                if meta.get("batch_order") == BATCH_ORDER else
                 "The batches ran method by method (each method over every level, one method after the other)."))
     L.append("")
 
@@ -1299,7 +1299,7 @@ def main(argv: list[str] | None = None) -> int:
         "total_wall_s": time.monotonic() - t0,
         "work_rel": _rel(work),
         "pinned_cpu": pinned_cpu,
-        "batch_order": "by level",  # batch_order(): level by level, the methods' order alternating
+        "batch_order": BATCH_ORDER,
     }
     meta_path.write_text(json.dumps({"meta": meta, "runs": [asdict(r) for r in runs],
                                      "ablations": [asdict(r) for r in ablation_runs], "profile": profile}, indent=1))
