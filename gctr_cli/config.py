@@ -138,9 +138,6 @@ class VerdictConfig(_Strict):
     refined_finalists: int = Field(
         3, ge=1, description="distinct transforms refined and compared at the tight tolerances")
     rival_pool: int = Field(30, ge=0, description="best unrefined transforms of the search also checked as rivals")
-    refined_rivals: int = Field(
-        3, ge=0, description="the strongest of those rivals refined too, so that near misses of the answer that "
-        "converge onto it do not count as rivals; 0 = compare them unrefined")
     tight_distance_ratio: float = Field(
         0.02, gt=0, lt=1, description="final comparison: distance / robust target diameter")
     tight_noise_factor: float = Field(

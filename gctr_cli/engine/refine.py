@@ -14,7 +14,7 @@ import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
 from gctr_cli.engine.similarity import umeyama
-from gctr_cli.engine.verdict import displacement, surface_matches
+from gctr_cli.engine.verdict import surface_matches
 from gctr_cli.geometry import apply, to_matrix
 
 
@@ -74,8 +74,7 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
                               iterations: int, start: float, end: float, scale_bounds: tuple[float, float],
                               tgt_tree: cKDTree | None = None, src_normals: np.ndarray | None = None,
                               max_normal_angle_deg: float = 90.0, src_tree: cKDTree | None = None,
-                              symmetric: bool = False, max_matches: int = 0,
-                              stop_near: tuple[np.ndarray, np.ndarray, float] | None = None) -> tuple[np.ndarray, int]:
+                              symmetric: bool = False, max_matches: int = 0) -> tuple[np.ndarray, int]:
     """Scaled point-to-plane ICP, linearised Gauss-Newton with trimming and Huber weights.
 
     Minimises ``sum w_i ((s R p_i + t - q_i) . n_i)^2`` over matches closer than a trimming
@@ -95,10 +94,6 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
     ``max_matches`` > 0 moves only a subset of at most that many points of each cloud, every k-th by
     index (their partners are still looked up among all points): seven parameters need far fewer
     matches than a working cloud has, and the neighbour queries are the cost of every iteration.
-
-    ``stop_near = (T_ref, points, radius)`` stops as soon as the transform moves ``points`` to within
-    ``radius`` (RMS) of where ``T_ref`` puts them: the verdict asks only whether a rival converges onto
-    its answer.
     """
     min_cos = float(np.cos(np.radians(max_normal_angle_deg)))
     tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
@@ -161,7 +156,5 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
             break
         T = T_new
         if np.linalg.norm(x) < 1e-7 and tau <= end * 1.001:
-            break
-        if stop_near is not None and displacement(T, stop_near[0], stop_near[1]) <= stop_near[2]:
             break
     return T, it
