@@ -24,7 +24,8 @@ NOT_FOR_REGISTER = ("open3d", "dask", "distributed", "matplotlib", "tqdm", "pand
                     "scipy.linalg", "scipy.special", "scipy.sparse.linalg", "scipy.spatial.transform",
                     "scipy.spatial._qhull", "scipy.spatial.distance",
                     # numpy: what scipy's `from numpy import *` would load and nothing uses (scipy_parts)
-                    "numpy.f2py", "numpy.testing")
+                    "numpy.f2py", "numpy.testing", "numpy.polynomial", "numpy.char",
+                    "numpy.ctypeslib", "numpy.rec", "numpy.strings")
 NOT_FOR_HELP = ("numpy", "scipy", "pydantic", "yaml", "gctr_cli.config", "gctr_cli.io", "gctr_cli.engine")
 
 
@@ -96,24 +97,30 @@ def test_scipy_parts_are_scipys_own_objects():
 
 
 def test_lean_scipy_sparse_leaves_numpy_whole():
-    """The stand-ins for numpy.f2py and numpy.testing during scipy.sparse's import leave no trace: both
-    load for real afterwards, scipy's compatibility namespace does not hold the stand-ins, and
-    Dijkstra (which checks for numpy.ma arrays) and coo_matrix work."""
+    """The stand-ins for the unused numpy submodules during scipy.sparse's import leave no trace: each
+    loads for real afterwards and works, scipy's compatibility namespace does not hold the stand-ins, and
+    Dijkstra and coo_matrix work, also on a numpy.ma array."""
     script = textwrap.dedent("""
         import sys
-        from gctr_cli.engine.scipy_parts import coo_matrix, dijkstra
-        assert "numpy.f2py" not in sys.modules and "numpy.testing" not in sys.modules
+        from gctr_cli.engine.scipy_parts import _UNUSED_NUMPY_SUBMODULES, coo_matrix, dijkstra
+        assert set(_UNUSED_NUMPY_SUBMODULES) >= {"f2py", "testing", "polynomial", "char"}
+        assert not [n for n in _UNUSED_NUMPY_SUBMODULES if "numpy." + n in sys.modules]
+        import scipy._lib.array_api_compat.numpy as compat
+        assert not [n for n in _UNUSED_NUMPY_SUBMODULES if hasattr(compat, n)]
+        exec("from scipy._lib.array_api_compat.numpy import *", {})
         import numpy as np
         np.testing.assert_allclose([1.0], [1.0])
         import numpy.f2py
         assert callable(numpy.f2py.run_main) and "numpy.testing" in sys.modules
-        import scipy._lib.array_api_compat.numpy as compat
-        assert not hasattr(compat, "f2py") and not hasattr(compat, "testing")
-        exec("from scipy._lib.array_api_compat.numpy import *", {})
+        assert np.polynomial.Polynomial([1.0, 2.0])(3.0) == 7.0
+        assert np.char.upper("ab") == "AB" and np.strings.lower("AB") == "ab"
+        assert np.rec.fromarrays([[1, 2]], names="a").a.tolist() == [1, 2]
+        assert np.ctypeslib.as_array((np.ctypeslib.ctypes.c_double * 2)(1.0, 2.0)).tolist() == [1.0, 2.0]
         graph = coo_matrix(([1.0, 2.0], ([0, 1], [1, 2])), shape=(3, 3)).tocsr()
         print(dijkstra(graph, directed=False, indices=[0]).ravel().tolist())
+        print(dijkstra(np.ma.masked_equal(graph.toarray(), 0.0), directed=False, indices=[0]).ravel().tolist())
     """)
-    assert _run_script(script) == ["[0.0,", "1.0,", "3.0]"]
+    assert _run_script(script) == ["[0.0,", "1.0,", "3.0]"] * 2
 
 
 def test_lean_scipy_sparse_after_numpy_testing():

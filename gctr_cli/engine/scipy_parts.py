@@ -14,18 +14,21 @@ the process runs the real ``__init__``, which picks up the already loaded submod
 or the shortcut fails for any reason (a scipy that moved these modules), the normal import is used.
 
 :func:`_import_scipy_sparse` imports ``scipy.sparse`` (Dijkstra and the engine's ``coo_matrix`` need
-it) without two numpy submodules nothing here uses. scipy.sparse (scipy 1.17 here) pulls in its vendored
-``array_api_compat.numpy``, which copies numpy's namespace with ``from numpy import *``; that loads
-every lazily imported numpy submodule, among them ``numpy.f2py`` (the Fortran wrapper generator, with
-``charset_normalizer``) and ``numpy.testing`` (with ``unittest``): 58 modules and 0.04-0.12 s of a
-0.45-0.65 s import on one core of this machine (median of 8 alternating runs about 0.08 s). While
-scipy.sparse imports, bare stand-ins take their place; afterwards the stand-ins are removed from
-``sys.modules``, from numpy's namespace and from the compatibility module's (and its ``__all__``), so a later
-``numpy.testing`` or ``import numpy.f2py`` anywhere in the process loads the real ones (a test checks
-it). What remains different: scipy's private ``array_api_compat.numpy`` namespace has no ``testing``
-and ``f2py`` (scipy 1.17 reads them only for CuPy and torch arrays). The shortcut is taken only in a
-process with a single thread (``gctr register``, the pool's spawned workers): other threads would see
-the stand-ins while scipy.sparse imports.
+it) without the numpy submodules nothing here uses (:data:`_UNUSED_NUMPY_SUBMODULES`). scipy.sparse
+(scipy 1.17 here) pulls in its vendored ``array_api_compat.numpy``, which copies numpy's namespace with
+``from numpy import *``; that loads every lazily imported numpy submodule: ``numpy.f2py`` (the Fortran
+wrapper generator, with ``charset_normalizer``) and ``numpy.testing`` (with ``unittest``), 58 modules and
+0.04-0.12 s of a 0.45-0.65 s import on one core of the Intel machine (median of 8 alternating runs about
+0.08 s); and ``numpy.polynomial``, ``numpy.char``, ``numpy.ctypeslib``, ``numpy.rec`` and
+``numpy.strings``, about 4.5 ms on one core of the AMD machine (``numpy.ma`` is not among them:
+``np.unique`` and ``np.median`` load it on their first call anyway). While scipy.sparse imports, bare
+stand-ins take their place; afterwards the stand-ins are removed from ``sys.modules``, from numpy's
+namespace and from the compatibility module's (and its ``__all__``), so a later ``numpy.testing``,
+``np.polynomial`` or ``import numpy.f2py`` anywhere in the process loads the real ones (a test checks
+it). What remains different: scipy's private ``array_api_compat.numpy`` namespace lacks these
+submodules (scipy 1.17 reads ``testing`` and ``f2py`` there only for CuPy and torch arrays, the others
+nowhere). The shortcut is taken only in a process with a single thread (``gctr register``, the pool's
+spawned workers): other threads would see the stand-ins while scipy.sparse imports.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 #: numpy submodules that ``from numpy import *`` loads and neither scipy.sparse nor the engine uses
-_UNUSED_NUMPY_SUBMODULES = ("f2py", "testing")
+_UNUSED_NUMPY_SUBMODULES = ("f2py", "testing", "polynomial", "char", "ctypeslib", "rec", "strings")
 
 
 @contextmanager
