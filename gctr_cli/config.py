@@ -134,7 +134,9 @@ class VerdictConfig(_Strict):
     sample_points: int = Field(800, ge=50, description="points of each cloud moved and looked up per candidate")
     finalists: int = Field(10, ge=1, description="hypotheses per round scored by surface agreement")
     max_normal_angle_deg: float = Field(30.0, gt=0, le=90, description="normals agree below this angle")
-    distinct_ratio: float = Field(0.1, gt=0, description="a rival moves the source by more (RMS / robust diameter)")
+    distinct_ratio: float = Field(
+        0.1, gt=0, description="finalists differ when they move the source by more (RMS / robust diameter); "
+                               "a rival must move the data the answer aligns by more")
     refined_finalists: int = Field(
         3, ge=1, description="distinct transforms refined and compared at the tight tolerances")
     rival_pool: int = Field(30, ge=0, description="best unrefined transforms of the search also checked as rivals")

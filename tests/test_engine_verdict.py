@@ -17,7 +17,16 @@ from scipy.spatial.transform import Rotation
 from data_scripts.make_benchmark import make_part_pair, make_sfm_pair
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine import register, score_transform
-from gctr_cli.engine.verdict import Agreement, Surface, confidence, normal_space_weights, surface_agreement
+from gctr_cli.engine.verdict import (
+    Agreement,
+    SharedData,
+    Surface,
+    confidence,
+    displacement,
+    normal_space_weights,
+    shared_displacement,
+    surface_agreement,
+)
 from gctr_cli.io import load_point_cloud
 from gctr_cli.metrics import transform_errors
 
@@ -144,6 +153,47 @@ def test_confidence_is_the_lead_over_the_rival():
     assert confidence(0.3, 0.3, 0.25) == 0.0
     assert confidence(0.2, 0.4, 0.25) == 0.0  # a better rival never gives a negative confidence
     assert Agreement(0.2, 0.6).score == pytest.approx(0.4)
+
+
+def _turn_about(centre: np.ndarray, degrees: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.0, 0.0, 1.0])).as_matrix()
+    T[:3, 3] = centre - T[:3, :3] @ centre
+    return T
+
+
+def test_rivals_are_judged_on_the_shared_data():
+    """Whole bunny as source, a quarter of it as target, answer = identity. A 4-degree turn about the
+    patch moves the far side of the whole by much more than the patch itself: on the whole source
+    sample it looks like a distinct alignment, on the shared data it is a near copy of the answer.
+    A shift of the patch by its own size is distinct either way."""
+    whole = _model("bunny")
+    whole = (whole - whole.mean(axis=0)) / np.ptp(whole, axis=0).max()
+    normals = np.tile([0.0, 0.0, 1.0], (len(whole), 1))
+    centre = whole[np.argmax(whole[:, 0])]  # a patch at the tip of the model
+    near = np.linalg.norm(whole - centre, axis=1)
+    patch = whole[near <= np.quantile(near, 0.25)]
+    src = _surface(whole, normals)
+    tgt = _surface(patch, np.tile([0.0, 0.0, 1.0], (len(patch), 1)))
+    answer = np.eye(4)
+    shared = SharedData.of(answer, src, tgt, distance=0.01)
+    assert 0.15 * len(src.sample) < len(shared.source) < 0.4 * len(src.sample)  # the patch's share of the whole
+    assert len(shared.target) == len(tgt.sample)  # every patch point lies on the whole
+
+    turn = _turn_about(patch.mean(axis=0), 4.0)
+    on_whole = displacement(turn, answer, src.sample)
+    on_shared = shared_displacement(turn, answer, shared, src.sample)
+    assert on_shared < 0.5 * on_whole
+    patch_size = float(np.linalg.norm(np.ptp(patch, axis=0)))
+    shift = np.eye(4)
+    shift[:3, 3] = [0.0, patch_size, 0.0]
+    assert shared_displacement(shift, answer, shared, src.sample) == pytest.approx(patch_size)
+    # no shared data (an answer that puts the source nowhere near the target): the whole sample decides
+    away = np.eye(4)
+    away[:3, 3] = [10.0, 0.0, 0.0]
+    nothing = SharedData.of(away, src, tgt, distance=0.01)
+    assert len(nothing.source) == len(nothing.target) == 0
+    assert shared_displacement(turn, away, nothing, src.sample) == pytest.approx(displacement(turn, away, src.sample))
 
 
 # ------------------------------------------------------------------------------------- part in whole

@@ -13,7 +13,15 @@ from gctr_cli.config import EngineConfig
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer
 from gctr_cli.engine.refine import scaled_point_to_plane_icp, trimmed_scaled_icp
 from gctr_cli.engine.search import Candidate
-from gctr_cli.engine.verdict import Agreement, Verdict, confidence, displacement, surface_agreement
+from gctr_cli.engine.verdict import (
+    Agreement,
+    SharedData,
+    Verdict,
+    confidence,
+    displacement,
+    shared_displacement,
+    surface_agreement,
+)
 
 #: below this agreement a refused answer explains too little to call the data "ambiguous"
 AMBIGUITY_MIN_SCORE = 0.15
@@ -76,7 +84,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     *distinct* ones (each moves the source by more than ``verdict.distinct_ratio`` from the others)
     are refined and compared at the verdict's tight tolerances, so that no transform wins by
     precision alone. The best is the answer; the confidence weighs its tight agreement against the
-    best distinct rival's.
+    best rival's (a rival aligns the data the answer aligns differently: :func:`shared_displacement`).
     """
     v = cfg.verdict
     pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
@@ -97,9 +105,16 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
                      key=lambda x: -x[1].score)
     T_answer, agreement = refined[0]
     # Rivals: the other refined finalists, and (unrefined, so at a disadvantage) the best of the
-    # rest of the pool — finalists can converge onto the answer when refined.
-    rivals = [a.score for T, a in refined[1:] if distinct(T, T_answer)]
-    unrefined = islice((T for T, _ in pool if distinct(T, T_answer)), v.rival_pool)
+    # rest of the pool — finalists can converge onto the answer when refined. A rival must align the
+    # data the answer aligns differently (shared_displacement): a near copy of the answer that only
+    # swings the unshared rest of a cloud elsewhere is no alternative.
+    shared = SharedData.of(T_answer, src_ref.surface, tgt_ref.surface, cfg.inlier_distance_ratio)
+
+    def rival(T: np.ndarray) -> bool:
+        return shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio
+
+    rivals = [a.score for T, a in refined[1:] if rival(T)]
+    unrefined = islice((T for T, _ in pool if rival(T)), v.rival_pool)
     rivals += [_tight_agreement(T, src_ref, tgt_ref, tolerances).score for T in unrefined]
     rival_score = max(rivals, default=0.0)
     support = sum(not distinct(T_answer, c.transform) for c in candidates)
