@@ -27,6 +27,7 @@ from gctr_cli.engine.verdict import (
     shared_displacement,
     surface_agreement,
 )
+from gctr_cli.geometry import apply
 from gctr_cli.io import load_point_cloud
 from gctr_cli.metrics import transform_errors
 
@@ -162,38 +163,76 @@ def _turn_about(centre: np.ndarray, degrees: float) -> np.ndarray:
     return T
 
 
+def _similarity(scale: float, rotvec: list[float], translation: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = scale * Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = translation
+    return T
+
+
 def test_rivals_are_judged_on_the_shared_data():
-    """Whole bunny as source, a quarter of it as target, answer = identity. A 4-degree turn about the
-    patch moves the far side of the whole by much more than the patch itself: on the whole source
-    sample it looks like a distinct alignment, on the shared data it is a near copy of the answer.
-    A shift of the patch by its own size is distinct either way."""
+    """Whole bunny as source, a quarter of it, moved by a similarity (scale 0.5), as target; the answer
+    is that similarity. A 4-degree turn about the patch moves the far side of the whole by much more
+    than the patch itself: on the whole source sample it looks like a distinct alignment, on the shared
+    data it is a near copy of the answer. A shift of the patch by its own size is distinct either way,
+    by exactly that size (in target units) on both sides."""
     whole = _model("bunny")
     whole = (whole - whole.mean(axis=0)) / np.ptp(whole, axis=0).max()
     normals = np.tile([0.0, 0.0, 1.0], (len(whole), 1))
     centre = whole[np.argmax(whole[:, 0])]  # a patch at the tip of the model
     near = np.linalg.norm(whole - centre, axis=1)
     patch = whole[near <= np.quantile(near, 0.25)]
+    answer = _similarity(0.5, [0.3, -1.1, 0.7], [2.0, -1.0, 0.5])
     src = _surface(whole, normals)
-    tgt = _surface(patch, np.tile([0.0, 0.0, 1.0], (len(patch), 1)))
-    answer = np.eye(4)
-    shared = SharedData.of(answer, src, tgt, distance=0.01)
+    tgt = _surface(apply(answer, patch), np.tile([0.0, 0.0, 1.0], (len(patch), 1)))
+    shared = SharedData.of(answer, src, tgt, distance=0.005)
     assert 0.15 * len(src.sample) < len(shared.source) < 0.4 * len(src.sample)  # the patch's share of the whole
-    assert len(shared.target) == len(tgt.sample)  # every patch point lies on the whole
+    assert len(shared.target) == len(tgt.sample)  # every patch point maps back onto the whole
 
-    turn = _turn_about(patch.mean(axis=0), 4.0)
+    turn = answer @ _turn_about(patch.mean(axis=0), 4.0)
     on_whole = displacement(turn, answer, src.sample)
     on_shared = shared_displacement(turn, answer, shared, src.sample)
     assert on_shared < 0.5 * on_whole
     patch_size = float(np.linalg.norm(np.ptp(patch, axis=0)))
     shift = np.eye(4)
-    shift[:3, 3] = [0.0, patch_size, 0.0]
-    assert shared_displacement(shift, answer, shared, src.sample) == pytest.approx(patch_size)
+    shift[:3, 3] = [0.0, patch_size, 0.0]  # in source units
+    shifted = answer @ shift
+    assert shared_displacement(shifted, answer, shared, src.sample) == pytest.approx(0.5 * patch_size)
+    only_target = SharedData(source=src.sample[:0], target=shared.target)  # the source side falls back
+    whole_turn = displacement(turn, answer, src.sample)
+    assert shared_displacement(turn, answer, only_target, src.sample) == pytest.approx(whole_turn)
+    assert shared_displacement(shifted, answer, only_target, src.sample) == pytest.approx(0.5 * patch_size)
+    # halving the source about the patch centre c moves the shared source points by |p - c| / 2, but
+    # the target side by |p - c| (T_answer T^-1 doubles them about c): the larger side counts
+    c = patch.mean(axis=0)
+    halve = np.diag([0.5, 0.5, 0.5, 1.0])
+    halve[:3, 3] = 0.5 * c
+    on_patch = apply(np.linalg.inv(answer), shared.target) - c
+    expected = 0.5 * float(np.sqrt(np.mean(np.sum(on_patch ** 2, axis=1))))  # answer's scale 0.5 x |p - c|
+    assert shared_displacement(answer @ halve, answer, shared, src.sample) == pytest.approx(expected)
+    assert displacement(answer @ halve, answer, shared.source) < 0.75 * expected
     # no shared data (an answer that puts the source nowhere near the target): the whole sample decides
-    away = np.eye(4)
-    away[:3, 3] = [10.0, 0.0, 0.0]
-    nothing = SharedData.of(away, src, tgt, distance=0.01)
+    away = _similarity(0.5, [0.0, 0.0, 0.0], [10.0, 0.0, 0.0])
+    nothing = SharedData.of(away, src, tgt, distance=0.005)
     assert len(nothing.source) == len(nothing.target) == 0
     assert shared_displacement(turn, away, nothing, src.sample) == pytest.approx(displacement(turn, away, src.sample))
+    flat = np.diag([1.0, 1.0, 0.0, 1.0])  # not a similarity (zero scale): nothing shared, no division by zero
+    degenerate = SharedData.of(flat, src, tgt, distance=0.005)
+    assert len(degenerate.source) == len(degenerate.target) == 0
+
+
+def test_shared_data_tolerance_is_in_each_clouds_units():
+    """A plane of source points and its image at scale 0.5, lifted 0.3 target units off the plane: with
+    a 0.4 tolerance in target units every source point lands near a target point, and every target
+    point lands within 0.4 / 0.5 = 0.8 source units of the source (0.6 away): the backward test uses
+    the tolerance divided by the scale."""
+    grid = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), [0.0], indexing="ij"), -1).reshape(-1, 3)
+    answer = _similarity(0.5, [0.0, 0.0, 0.4], [1.0, 2.0, 3.0])
+    lifted = apply(answer, grid) + [0.0, 0.0, 0.3]
+    up = np.tile([0.0, 0.0, 1.0], (len(grid), 1))
+    shared = SharedData.of(answer, _surface(grid, up, 100), _surface(lifted, up, 100), distance=0.4)
+    assert len(shared.source) == len(shared.target) == 100
+    assert len(SharedData.of(answer, _surface(grid, up, 100), _surface(lifted, up, 100), distance=0.25).target) == 0
 
 
 # ------------------------------------------------------------------------------------- part in whole

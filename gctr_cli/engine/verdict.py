@@ -162,6 +162,8 @@ class SharedData:
     def of(cls, T: np.ndarray, src: Surface, tgt: Surface, distance: float) -> SharedData:
         A = T[:3, :3]
         s = float(np.cbrt(np.linalg.det(A)))
+        if not np.isfinite(s) or s <= 0:  # not a similarity: nothing is shared (the whole sample decides)
+            return cls(src.sample[:0], tgt.sample[:0])
         d_fwd, _ = tgt.tree.query(apply(T, src.sample), distance_upper_bound=distance)
         back = (tgt.sample - T[:3, 3]) @ (A / s) / s
         d_back, _ = src.tree.query(back, distance_upper_bound=distance / s)
