@@ -120,22 +120,36 @@ def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surfa
     return float(weights[i].sum() / weights.sum())
 
 
+def _scale_rotation(T: np.ndarray) -> tuple[float, np.ndarray] | None:
+    """Scale ``s`` and rotation ``R`` of the similarity ``T``; ``None`` if its 3x3 block has no
+    positive scale (not a similarity)."""
+    A = T[:3, :3]
+    s = float(np.cbrt(np.linalg.det(A)))
+    if not np.isfinite(s) or s <= 0:
+        return None
+    return s, A / s
+
+
+def _pulled_back(T: np.ndarray, s: float, R: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Target ``points`` taken into the source frame by the inverse of ``T = [[s R, t]]``."""
+    return (points - T[:3, 3]) @ R / s
+
+
 def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float,
                       max_angle_deg: float = 30.0) -> Agreement:
     """Surface agreement of the similarity ``T`` (normalised source -> normalised target).
 
     ``distance`` is in target units; the backward test uses ``distance / s`` in source units.
     """
-    A = T[:3, :3]
-    s = float(np.cbrt(np.linalg.det(A)))
-    if not np.isfinite(s) or s <= 0:
+    scale_rotation = _scale_rotation(T)
+    if scale_rotation is None:
         return Agreement(0.0, 0.0)
-    R = A / s
+    s, R = scale_rotation
     min_cos = float(np.cos(np.radians(max_angle_deg)))
     fwd = _share_on_surface(apply(T, src.sample), src.sample_normals @ R.T, tgt, distance, min_cos,
                             src.sample_weights)
-    back_pts = (tgt.sample - T[:3, 3]) @ R / s
-    back = _share_on_surface(back_pts, tgt.sample_normals @ R, src, distance / s, min_cos, tgt.sample_weights)
+    back = _share_on_surface(_pulled_back(T, s, R, tgt.sample), tgt.sample_normals @ R, src, distance / s, min_cos,
+                             tgt.sample_weights)
     return Agreement(fwd, back)
 
 
@@ -160,14 +174,15 @@ class SharedData:
 
     @classmethod
     def of(cls, T: np.ndarray, src: Surface, tgt: Surface, distance: float) -> SharedData:
-        A = T[:3, :3]
-        s = float(np.cbrt(np.linalg.det(A)))
-        if not np.isfinite(s) or s <= 0:  # not a similarity: nothing is shared (the whole sample decides)
+        """Proximity alone (no normal test), at ``distance`` in target units as
+        :func:`surface_agreement`; nothing is shared if ``T`` is not a similarity."""
+        scale_rotation = _scale_rotation(T)
+        if scale_rotation is None:
             return cls(src.sample[:0], tgt.sample[:0])
-        d_fwd, _ = tgt.tree.query(apply(T, src.sample), distance_upper_bound=distance)
-        back = (tgt.sample - T[:3, 3]) @ (A / s) / s
-        d_back, _ = src.tree.query(back, distance_upper_bound=distance / s)
-        return cls(src.sample[np.isfinite(d_fwd)], tgt.sample[np.isfinite(d_back)])
+        s, R = scale_rotation
+        fwd, _ = surface_matches(apply(T, src.sample), None, tgt.normals, tgt.tree, distance, 0.0)
+        back, _ = surface_matches(_pulled_back(T, s, R, tgt.sample), None, src.normals, src.tree, distance / s, 0.0)
+        return cls(src.sample[fwd], tgt.sample[back])
 
 
 def shared_displacement(T: np.ndarray, T_answer: np.ndarray, shared: SharedData, sample: np.ndarray) -> float:
