@@ -116,7 +116,9 @@ class RefineConfig(_Strict):
     symmetric: bool = Field(
         True, description="point_to_plane also matches the target back onto the source (two-way; one-way ICP "
                           "shrinks the moving cloud on noisy data)")
-    iterations: int = Field(15, ge=1, le=500)
+    iterations: int = Field(
+        10, ge=1, le=500, description="ICP iterations; the trimming distance shrinks geometrically from start_ratio "
+                                      "to end_ratio over them")
     max_matches: int = Field(
         2000, ge=0, description="point_to_plane: points of each cloud moved and matched per iteration (every k-th); "
                                 "0 = all")
