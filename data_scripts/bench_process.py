@@ -6,7 +6,12 @@ method run through ``gctr register -c CONFIG`` (issue 10, item 3 and engine spee
     python -m data_scripts.bench_process --methods icp,cpd --reps 3 --source a.ply --target b.ply
 
 What runs, each as a fresh process pinned to one core (``taskset -c CPU``) with one BLAS/OpenMP thread,
-``--reps`` times (after one untimed warm-up run of each, so every run finds the files in the page cache):
+``--reps`` times, every timed run right after an untimed run of the same command (``--no-warm``: only one
+warm-up run of each at the start). Some machines page out file pages that have not been read for a while
+(Linux DAMON reclaim: on the machine of the committed report, pages idle for about 60 s); interleaved with
+the other commands, a command then re-reads part of its libraries from disk on some repetitions and not on
+others (the same ``gctr register`` took 0.46-0.88 s). The warm-up right before each timed run gives every
+command the same, hot page cache; the report says whether DAMON reclaim was on:
 
 * ``gctr register SOURCE TARGET -o MATRIX`` (the console script of this checkout, method ``gctr``, built-in
   defaults);
@@ -104,6 +109,24 @@ def run(cmd: list[str], cpu: int, ok_codes: tuple[int, ...] = (0,)) -> tuple[flo
     return wall, proc.stdout, proc.stderr
 
 
+def damon_state(admin: Path = Path("/sys/kernel/mm/damon/admin/kdamonds")) -> str:
+    """Whether a DAMON reclaim daemon is running (it pages out file pages idle for a while, so a command
+    interleaved with others may find its libraries partly evicted), with its minimum idle age."""
+    running = []
+    for kd in sorted(admin.glob("[0-9]*")) if admin.is_dir() else []:
+        try:
+            if (kd / "state").read_text().strip() != "on":
+                continue
+            ctx = kd / "contexts" / "0"
+            aggr_us = int((ctx / "monitoring_attrs" / "intervals" / "aggr_us").read_text())
+            min_age = int((ctx / "schemes" / "0" / "access_pattern" / "age" / "min").read_text())
+            action = (ctx / "schemes" / "0" / "action").read_text().strip()
+            running.append(f"{action} after {min_age * aggr_us / 1e6:.0f} s idle")
+        except (OSError, ValueError):
+            running.append("on")
+    return "on (" + "; ".join(running) + ")" if running else "off or not available"
+
+
 def importtime(stderr: str) -> dict[str, float]:
     """Top-level module -> cumulative import seconds, from ``-X importtime`` output."""
     out: dict[str, float] = {}
@@ -169,6 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comparison methods timed through `gctr register -c` (default: all, "
                         f"{','.join(BASELINES)}; '' = none)")
     p.add_argument("--reps", type=int, default=7, help="timed runs of each command (default 7)")
+    p.add_argument("--no-warm", dest="warm", action="store_false",
+                   help="no untimed run of a command right before each of its timed runs (only one warm-up "
+                        "run of each at the start)")
     p.add_argument("--cpu", type=int, default=0, help="core the processes are pinned to (default 0)")
     p.add_argument("--work", type=Path, default=REPO_ROOT / "bench" / "work" / "process")
     p.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "PROCESS.md")
@@ -291,6 +317,8 @@ def main(argv: list[str] | None = None) -> int:
     probe_s: dict[str, list[float]] = {k: [] for k in commands}
     for rep in range(args.reps):
         for name, cmd in commands.items():
+            if args.warm:  # the same hot page cache for every command (see the module docstring)
+                run(cmd, args.cpu, ok_codes.get(name, (0,)))
             wall, out, _ = run(cmd, args.cpu, ok_codes.get(name, (0,)))
             walls[name].append(wall)
             if name in registering:
@@ -308,6 +336,8 @@ def main(argv: list[str] | None = None) -> int:
                                        for m in probes[name])
                              + "print(time.perf_counter() - t0)"], args.cpu)
             probe_s[name].append(float(out))
+        if args.warm:
+            run(clocked, args.cpu)
         wall, out, err = run(clocked, args.cpu)
         inprocess = float(field(r"@@inprocess (\S+)", err, "@@inprocess line"))
         start_exit.append(wall - inprocess)
@@ -351,7 +381,10 @@ def main(argv: list[str] | None = None) -> int:
          "(other processes share the machine: compare the columns, not the absolute values). "
          f"Pair: `{_rel(args.source)}` ({_points(args.source)} points) → `{_rel(args.target)}` "
          f"({_points(args.target)} points). Every process pinned to one core (`taskset -c {args.cpu}`), one "
-         f"BLAS/OpenMP thread; median of {args.reps} repetition(s) after a warm-up run.", "",
+         f"BLAS/OpenMP thread; median of {args.reps} repetition(s), "
+         + ("each right after an untimed run of the same command (the same hot page cache for every command)"
+            if args.warm else "after one warm-up run of each command")
+         + f"; page-out of idle file pages (Linux DAMON reclaim): {damon_state()}.", "",
          *TABLE_HEADER]
     for name in commands:
         L.append(table_row(name, walls[name], med[OPEN3D], import_s(name), importtime_s(name), runtimes.get(name)))

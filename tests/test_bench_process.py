@@ -64,3 +64,27 @@ def test_command_lines_are_exact_and_list_the_method_configs(tmp_path, monkeypat
     assert "- `python -c pass`: `taskset -c 1 /v/bin/python -c pass`" in text
     assert "OMP_NUM_THREADS=1" in text
     assert f"`{bp._rel(Path(cfg))}` = `method: icp`" in text
+
+
+def _kdamond(root, state, action="pageout", aggr_us=5_000_000, min_age=12):
+    ctx = root / "0" / "contexts" / "0"
+    (ctx / "monitoring_attrs" / "intervals").mkdir(parents=True)
+    (ctx / "schemes" / "0" / "access_pattern" / "age").mkdir(parents=True)
+    (root / "0" / "state").write_text(state + "\n")
+    (ctx / "monitoring_attrs" / "intervals" / "aggr_us").write_text(f"{aggr_us}\n")
+    (ctx / "schemes" / "0" / "access_pattern" / "age" / "min").write_text(f"{min_age}\n")
+    (ctx / "schemes" / "0" / "action").write_text(action + "\n")
+
+
+def test_damon_state_reports_the_idle_age_after_which_pages_go(tmp_path):
+    _kdamond(tmp_path, "on")
+    assert bp.damon_state(tmp_path) == "on (pageout after 60 s idle)"
+    off = tmp_path / "off"
+    _kdamond(off, "off")
+    assert bp.damon_state(off) == "off or not available"
+    assert bp.damon_state(tmp_path / "missing") == "off or not available"
+
+
+def test_every_timed_run_is_warmed_unless_told_otherwise():
+    assert bp.build_parser().parse_args([]).warm is True
+    assert bp.build_parser().parse_args(["--no-warm"]).warm is False
