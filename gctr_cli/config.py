@@ -99,7 +99,7 @@ class OuterLoopConfig(_Strict):
         2, ge=0, description="stop the overlap search once this many hypotheses found the same transform; 0 = never")
     settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
     settle_alone: float = Field(
-        0.55, ge=0, le=1, description="stop the search after a hypothesis whose surface agreement reaches this; "
+        0.52, ge=0, le=1, description="stop the search after a hypothesis whose surface agreement reaches this; "
                                      "1 = never")
     settle_round: float = Field(
         0.5, ge=0, le=1, description="stop a hypothesis' outer loop after a round whose best surface agreement "
