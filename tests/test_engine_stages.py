@@ -916,14 +916,15 @@ def test_settle_rules_stop_on_agreement_alone_or_on_support():
         return Candidate(transform=M, n_inliers=10, iterations=1, agreement=Agreement(score, score), overlap=1.0,
                          alternatives=())
 
-    cfg = EngineConfig()  # settle_alone 0.55, settle_support 2 at settle_agreement 0.5
+    cfg = EngineConfig()  # settle_alone 0.52, settle_support 2 at settle_agreement 0.5
+    assert cfg.outer.settle_alone == 0.52 and cfg.outer.settle_agreement == 0.5
     assert settled(cand(T, 0.65), [cand(T, 0.65)], src, cfg)  # alone
-    assert settled(cand(T, 0.55), [cand(T, 0.55)], src, cfg)  # alone, at the threshold itself
-    assert not settled(cand(T, 0.54), [cand(T, 0.54)], src, cfg)
-    assert settled(cand(T, 0.54), [cand(T, 0.54), cand(T, 0.52)], src, cfg)  # support 2 at >= 0.5
+    assert settled(cand(T, 0.52), [cand(T, 0.52)], src, cfg)  # alone, at the threshold itself
+    assert not settled(cand(T, 0.51), [cand(T, 0.51)], src, cfg)
+    assert settled(cand(T, 0.51), [cand(T, 0.51), cand(T, 0.5)], src, cfg)  # support 2 at >= 0.5
     assert settled(cand(T, 0.5), [cand(T, 0.5), cand(T, 0.5)], src, cfg)  # at settle_agreement itself
     assert not settled(cand(T, 0.49), [cand(T, 0.49), cand(T, 0.49)], src, cfg)  # just below it
-    assert not settled(cand(T, 0.54), [cand(T, 0.54), cand(far, 0.52)], src, cfg)  # two, but distinct
+    assert not settled(cand(T, 0.51), [cand(T, 0.51), cand(far, 0.5)], src, cfg)  # two, but distinct
     low = [cand(T, 0.2), cand(far, 0.18), cand(T, 0.19), cand(T, 0.17)]
     assert not settled(low[0], low, src, cfg)  # many agree, but at a low agreement: the search goes on
     never = EngineConfig.model_validate({"outer": {"settle_support": 0, "settle_alone": 1.0}})
