@@ -1,0 +1,88 @@
+"""The settle-margin tool (data_scripts/settle_margin.py): every overlap hypothesis' candidate of a pair,
+scored against the ground truth, and the report built from them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from data_scripts import bench_engine as be
+from data_scripts import make_benchmark as mb
+from data_scripts import settle_margin as sm
+
+
+@pytest.fixture(scope="module")
+def easy_pair(tmp_path_factory) -> Path:
+    """``pairs.csv`` with one easy bunny pair (3000-point source)."""
+    from gctr_cli.io import load_point_cloud
+
+    out = tmp_path_factory.mktemp("margin") / "data"
+    bunny = load_point_cloud(mb.DATA_DIR / "models" / "bunny.ply")
+    pair = mb.make_pair(bunny, mb.LEVELS["easy"], mb.pair_rng(0, "easy", "bunny", 0), n_source=3000)
+    row = mb.write_pair(out / "easy", "easy_bunny_0", pair, "ply")
+    mb.write_manifest(out / "pairs.csv", [{**row, **{c: f"easy/{row[c]}" for c in ("source", "target", "gt")},
+                                           "model": "bunny", "level": "easy"}])
+    return out
+
+
+def test_every_hypothesis_runs_and_the_first_candidate_is_the_engines_answer(easy_pair):
+    """With settling off, every hypothesis of the plan yields a candidate; on a clean pair the first one is
+    right and reaches ``settle_alone``, so a normal run stops there and answers from it."""
+    from gctr_cli.config import EngineConfig
+    from gctr_cli.engine.search import search_plan
+
+    config, config_dict = be.resolve_config(None, sm.NEVER_SETTLE)
+    task = be.load_tasks(easy_pair / "pairs.csv", ["easy"], False, config, config_dict)[0]
+    rows = sm.candidates_of(task)
+    assert [r["order"] for r in rows] == list(range(len(search_plan(EngineConfig()))))
+    first = rows[0]
+    assert first["right"] and first["rot_err_deg"] < 5.0  # unrefined (the verdict's ICP polishes it)
+    assert first["agreement"] >= EngineConfig().outer.settle_alone  # so a normal run stops after it
+    assert first["overlap"] == 1.0
+    # a normal run (settling on) stops after this first hypothesis and answers from it
+    _, normal_dict = be.resolve_config(None, [])
+    result = be.run_one({**task, "config": normal_dict, "diagnose": False})
+    assert result["overlap"] == 1.0 and result["outcome"] == "success"
+    assert all(np.isfinite(r["agreement"]) and 0.0 <= r["agreement"] <= 1.0 for r in rows)
+
+
+def test_kinds_and_report_counts():
+    def row(pid, order, agreement, right, rot):
+        return {"pair_id": pid, "level": "hard", "order": order, "overlap": 1.0, "agreement": agreement,
+                "right": right, "rot_err_deg": rot}
+
+    rows = [row("a", 0, 0.70, True, 0.5), row("a", 1, 0.48, False, 170.0),
+            row("b", 0, 0.53, False, 3.0), row("b", 1, 0.20, False, 90.0),
+            row("c", 0, 0.45, False, 120.0)]  # exactly at a threshold: counts
+    assert [sm.kind(r) for r in rows] == ["right", "wrong basin", "imprecise", "wrong basin", "wrong basin"]
+    report = sm.render(rows, ["hard"], Path("data"), 3)
+    hard = next(line for line in report.splitlines() if line.startswith("| hard |"))
+    assert "| 3 | 5 | 1 |" in hard  # pairs, candidates, right
+    assert "0.480 (a, hypothesis 2, 170.0°)" in hard and "0.530 (b, hypothesis 1, 3.0°)" in hard
+    assert "0.700 (a, hypothesis 1, 0.5°)" in hard
+    lines = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
+             for line in report.splitlines() if line.startswith("| 0.")}
+    # t: wrong-basin, imprecise candidates >= t; where the search stops: right, imprecise, wrong basin
+    assert lines["0.4"][1:] == ["2", "1", "1", "1", "1: c (0.450, hypothesis 1, 120.0°)"]
+    assert lines["0.45"][1:] == ["2", "1", "1", "1", "1: c (0.450, hypothesis 1, 120.0°)"]
+    assert lines["0.5"][1:] == ["0", "1", "1", "1", "0"]
+    assert lines["0.55"][1:] == ["0", "0", "1", "0", "0"]
+    # the best candidate so far decides: pair a stops at its right first candidate, never at its wrong second
+    assert sm.settling_candidate(rows[:2], 0.45) is rows[0]
+    assert sm.settling_candidate(rows[2:4], 0.6) is None
+
+
+def test_report_renders_again_from_the_csv(tmp_path):
+    rows = [{"pair_id": "a", "level": "cross", "order": 0, "overlap": 1.0, "agreement": 0.61, "right": True,
+             "rot_err_deg": 0.4}, {"pair_id": "a", "level": "cross", "order": 1, "overlap": 0.75,
+                                   "agreement": 0.3, "right": False, "rot_err_deg": 90.0}]
+    path = tmp_path / "c.csv"
+    with open(path, "w", newline="") as fh:
+        import csv
+
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    assert sm.read_rows(path) == rows
