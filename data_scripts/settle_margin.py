@@ -75,8 +75,7 @@ def candidates_of(task: dict[str, Any]) -> list[dict[str, Any]]:
                                source_centre=source.mean(axis=0))
         rows.append({"pair_id": task["pair_id"], "level": task["level"], "order": order,
                      "overlap": cand.overlap, "agreement": cand.agreement.score,
-                     "right": bool(err.rot_err_deg < s.rotation_deg and err.trans_err_rel < s.translation_rel
-                                   and err.scale_err < s.scale),
+                     "right": err.success(s.rotation_deg, s.translation_rel, s.scale),
                      "rot_err_deg": err.rot_err_deg})
     return rows
 

@@ -155,7 +155,12 @@ def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float
 
 def displacement(T1: np.ndarray, T2: np.ndarray, points: np.ndarray) -> float:
     """RMS distance between where two transforms put ``points`` (target units)."""
-    return float(np.sqrt(np.mean(np.sum((apply(T1, points) - apply(T2, points)) ** 2, axis=1))))
+    return _rms(apply(T1, points) - apply(T2, points))
+
+
+def _rms(vectors: np.ndarray) -> float:
+    """Root mean square length of (N, 3) ``vectors``."""
+    return float(np.sqrt(np.mean(np.sum(vectors ** 2, axis=1))))
 
 
 #: below this many shared sample points on a side, that side's rival test uses the whole source sample
@@ -197,15 +202,11 @@ def shared_displacement(T: np.ndarray, T_answer: np.ndarray, shared: SharedData,
     data barely move (measured on the benchmark's part and hard pairs, such near copies of the answer
     were the rivals that held right answers below the confidence threshold).
     """
-    if len(shared.source) >= MIN_SHARED_POINTS:
-        on_source = displacement(T, T_answer, shared.source)
-    else:
-        on_source = displacement(T, T_answer, sample)
-    if len(shared.target) >= MIN_SHARED_POINTS:
-        moved = apply(T_answer, apply(np.linalg.inv(T), shared.target)) - shared.target
-        on_target = float(np.sqrt(np.mean(np.sum(moved ** 2, axis=1))))
-    else:
-        on_target = displacement(T, T_answer, sample)
+    enough_source, enough_target = (len(side) >= MIN_SHARED_POINTS for side in (shared.source, shared.target))
+    whole = displacement(T, T_answer, sample) if not (enough_source and enough_target) else 0.0
+    on_source = displacement(T, T_answer, shared.source) if enough_source else whole
+    on_target = (_rms(apply(T_answer, apply(np.linalg.inv(T), shared.target)) - shared.target) if enough_target
+                 else whole)
     return max(on_source, on_target)
 
 
