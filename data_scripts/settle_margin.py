@@ -1,9 +1,12 @@
-"""How close the search's wrong candidates come to its early-stop thresholds (``outer.settle_alone``).
+"""How close the search's wrong candidates come to its early-stop thresholds (``outer.settle_alone``,
+``outer.settle_full``).
 
 The search stops after an overlap hypothesis whose candidate reaches surface agreement
-``outer.settle_alone`` (default 0.52): the remaining hypotheses, and the rivals they would have
+``outer.settle_alone`` (default 0.52), or after the full-overlap hypothesis (the plan's first) when its
+candidate reaches ``outer.settle_full``: the remaining hypotheses, and the rivals they would have
 produced for the verdict, are skipped. That is only safe if no *wrong* candidate reaches the threshold.
-This tool runs every hypothesis of the plan on every pair (``settle_alone`` 1, ``settle_support`` 0;
+This tool runs every hypothesis of the plan on every pair (``settle_alone`` and ``settle_full`` 1,
+``settle_support`` 0;
 each hypothesis keeps its own seeded generator, so its candidate is the one a normal run would get),
 scores each candidate against the ground truth with the config's success thresholds, and reports:
 
@@ -12,9 +15,10 @@ scores each candidate against the ground truth with the config's success thresho
   one, each with its pair, hypothesis and rotation error;
 * per threshold, how many candidates of each kind reach it, and at what kind of candidate the search
   would stop if ``settle_alone`` were that threshold (the pairs stopped at a wrong-basin candidate are
-  listed: the ones that matter).
+  listed: the ones that matter);
+* the same for ``settle_full`` thresholds, with ``settle_alone`` at the config's value.
 
-Re-run it whenever the search or its agreement changes, before touching ``settle_alone``. Usage::
+Re-run it whenever the search or its agreement changes, before touching either threshold. Usage::
 
     python -m data_scripts.settle_margin --data bench/work/data-seed1 -j 2 --out /tmp/margin-s1.md
     python -m data_scripts.settle_margin --data bench/work/data-seed2 --levels hard,part --csv /tmp/c.csv
@@ -34,9 +38,10 @@ from typing import Any
 from data_scripts.bench_engine import ALL_LEVELS, BenchError, load_tasks, resolve_config
 
 THRESHOLDS = (0.4, 0.45, 0.5, 0.52, 0.55, 0.6)
+FULL_THRESHOLDS = (0.35, 0.4, 0.42, 0.45, 0.48, 0.5)
 #: a wrong candidate closer than this to the truth (degrees) is "imprecise": right basin, refinement's job
 IMPRECISE_DEG = 10.0
-NEVER_SETTLE = ["engine.outer.settle_alone=1.0", "engine.outer.settle_support=0"]
+NEVER_SETTLE = ["engine.outer.settle_alone=1.0", "engine.outer.settle_full=1.0", "engine.outer.settle_support=0"]
 
 
 def candidates_of(task: dict[str, Any]) -> list[dict[str, Any]]:
@@ -92,20 +97,24 @@ def kind(row: dict[str, Any]) -> str:
     return "imprecise" if row["rot_err_deg"] < IMPRECISE_DEG else "wrong basin"
 
 
-def settling_candidate(pair_rows: list[dict[str, Any]], threshold: float) -> dict[str, Any] | None:
-    """The best candidate so far at the first hypothesis (in plan order) where it reaches ``threshold``: the
-    answer's basin if ``settle_alone`` were ``threshold``; ``None`` if no candidate reaches it."""
+def settling_candidate(pair_rows: list[dict[str, Any]], threshold: float,
+                       full: float = 1.0) -> dict[str, Any] | None:
+    """The best candidate so far at the first hypothesis (in plan order) where it reaches ``threshold``
+    (``full`` when that candidate is the full-overlap hypothesis', as the engine's ``settled``): the
+    answer's basin if ``settle_alone`` were ``threshold`` and ``settle_full`` ``full``; ``None`` if no
+    candidate reaches it."""
     best: dict[str, Any] | None = None
     for r in sorted(pair_rows, key=lambda r: r["order"]):
         if best is None or r["agreement"] > best["agreement"]:
             best = r
-        if best["agreement"] >= threshold:
+        if best["agreement"] >= (min(threshold, full) if best["overlap"] >= 1.0 else threshold):
             return best
     return None
 
 
-def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: int) -> str:
-    """The markdown report (see the module docstring)."""
+def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: int, alone: float = 0.52) -> str:
+    """The markdown report (see the module docstring); ``alone`` is the ``settle_alone`` of the
+    ``settle_full`` table."""
     def fmt(r: dict[str, Any] | None) -> str:
         if r is None:
             return "–"
@@ -134,13 +143,24 @@ def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: i
     def count(sel: list[dict[str, Any]], k: str, t: float) -> int:
         return sum(kind(r) == k and r["agreement"] >= t for r in sel)
 
-    for t in THRESHOLDS:
-        stops = [stop for stop in (settling_candidate(rows_of, t) for rows_of in by_pair.values()) if stop]
+    def stops_row(label: str, sel: list[dict[str, Any]], t: float, alone_t: float, full_t: float) -> str:
+        stops = [stop for stop in (settling_candidate(rows_of, alone_t, full_t) for rows_of in by_pair.values())
+                 if stop]
         wrong = [f"{r['pair_id']} ({r['agreement']:.3f}, hypothesis {r['order'] + 1}, {r['rot_err_deg']:.1f}°)"
                  for r in stops if kind(r) == "wrong basin"]
-        out.append(f"| {t} | {count(rows, 'wrong basin', t)} | {count(rows, 'imprecise', t)} | "
-                   f"{sum(kind(r) == 'right' for r in stops)} | {sum(kind(r) == 'imprecise' for r in stops)} | "
-                   f"{len(wrong)}{': ' + ', '.join(wrong) if wrong else ''} |")
+        return (f"| {label} | {count(sel, 'wrong basin', t)} | {count(sel, 'imprecise', t)} | "
+                f"{sum(kind(r) == 'right' for r in stops)} | {sum(kind(r) == 'imprecise' for r in stops)} | "
+                f"{len(wrong)}{': ' + ', '.join(wrong) if wrong else ''} |")
+
+    out += [stops_row(f"{t}", rows, t, t, 1.0) for t in THRESHOLDS]
+    full_rows = [r for r in rows if r["overlap"] >= 1.0]
+    out += ["", f"Per threshold t of `settle_full` (the full-overlap hypothesis settles the search at t; "
+                f"`settle_alone` = {alone}): candidates of the full-overlap hypothesis with agreement ≥ t, and "
+                "where the search would stop.", "",
+            "| settle_full | wrong-basin candidates | imprecise candidates | stops at: right | imprecise "
+            "| wrong basin |",
+            "|---|---:|---:|---:|---:|---:|"]
+    out += [stops_row(f"full {t}", full_rows, t, alone, t) for t in FULL_THRESHOLDS]
     return "\n".join(out) + "\n"
 
 
@@ -171,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     levels = [lv.strip() for lv in args.levels.split(",") if lv.strip()]
     try:
+        alone = resolve_config(args.config, args.overrides)[0].engine.outer.settle_alone
         config, config_dict = resolve_config(args.config, [*args.overrides, *NEVER_SETTLE])
         tasks = load_tasks(args.data / "pairs.csv", levels, False, config, config_dict)
     except BenchError as err:
@@ -181,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
             rows = [r for pair_rows in pool.imap(candidates_of, tasks) for r in pair_rows]
-    report = render(rows, levels, args.data, len(tasks))
+    report = render(rows, levels, args.data, len(tasks), alone)
     if args.csv:
         with open(args.csv, "w", newline="", encoding="utf-8") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["pair_id"])

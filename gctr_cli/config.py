@@ -101,6 +101,9 @@ class OuterLoopConfig(_Strict):
     settle_alone: float = Field(
         0.52, ge=0, le=1, description="stop the search after a hypothesis whose surface agreement reaches this; "
                                      "1 = never")
+    settle_full: float = Field(
+        0.45, ge=0, le=1, description="stop the search after the full-overlap hypothesis (overlap 1, the plan's "
+                                    "first) when its surface agreement reaches this; 1 = only at settle_alone")
     settle_round: float = Field(
         0.5, ge=0, le=1, description="stop a hypothesis' outer loop after a round whose best surface agreement "
                                      "reaches this (later rounds only polish what the verdict's ICP refines); "

@@ -900,8 +900,9 @@ def test_reversed_candidate_inverts_transforms_and_swaps_shares():
 
 
 def test_settle_rules_stop_on_agreement_alone_or_on_support():
-    """The search stops after one hypothesis with a high agreement (``settle_alone``), or after
-    ``settle_support`` hypotheses that ended at the same transform with a good agreement."""
+    """The search stops after one hypothesis with a high agreement (``settle_alone``; ``settle_full``
+    for the full-overlap hypothesis), or after ``settle_support`` hypotheses that ended at the same
+    transform with a good agreement."""
     from types import SimpleNamespace
 
     from gctr_cli.engine.search import Candidate, settled
@@ -912,12 +913,20 @@ def test_settle_rules_stop_on_agreement_alone_or_on_support():
     T = to_matrix(1.0, np.eye(3), np.zeros(3))
     far = to_matrix(1.0, Rotation.from_euler("z", 90, degrees=True).as_matrix(), np.zeros(3))
 
-    def cand(M: np.ndarray, score: float) -> Candidate:
-        return Candidate(transform=M, n_inliers=10, iterations=1, agreement=Agreement(score, score), overlap=1.0,
+    def cand(M: np.ndarray, score: float, overlap: float = 0.75) -> Candidate:
+        return Candidate(transform=M, n_inliers=10, iterations=1, agreement=Agreement(score, score), overlap=overlap,
                          alternatives=())
 
-    cfg = EngineConfig()  # settle_alone 0.52, settle_support 2 at settle_agreement 0.5
-    assert cfg.outer.settle_alone == 0.52 and cfg.outer.settle_agreement == 0.5
+    cfg = EngineConfig()  # settle_alone 0.52, settle_full 0.45, settle_support 2 at settle_agreement 0.5
+    assert cfg.outer.settle_alone == 0.52 and cfg.outer.settle_full == 0.45 and cfg.outer.settle_agreement == 0.5
+    # the full-overlap hypothesis (overlap 1) settles the search from 0.45 on; any other only from 0.52
+    assert settled(cand(T, 0.45, 1.0), [cand(T, 0.45, 1.0)], src, cfg)
+    assert not settled(cand(T, 0.44, 1.0), [cand(T, 0.44, 1.0)], src, cfg)
+    assert not settled(cand(T, 0.51, 0.2025), [cand(far, 0.44, 1.0), cand(T, 0.51, 0.2025)], src, cfg)
+    late_best = [cand(far, 0.3, 1.0), cand(T, 0.48, 0.75)]  # the best so far is not the full-overlap one
+    assert not settled(late_best[1], late_best, src, cfg)
+    higher = EngineConfig.model_validate({"outer": {"settle_full": 0.6}})  # never above settle_alone
+    assert settled(cand(T, 0.52, 1.0), [cand(T, 0.52, 1.0)], src, higher)
     assert settled(cand(T, 0.65), [cand(T, 0.65)], src, cfg)  # alone
     assert settled(cand(T, 0.52), [cand(T, 0.52)], src, cfg)  # alone, at the threshold itself
     assert not settled(cand(T, 0.51), [cand(T, 0.51)], src, cfg)
@@ -927,8 +936,9 @@ def test_settle_rules_stop_on_agreement_alone_or_on_support():
     assert not settled(cand(T, 0.51), [cand(T, 0.51), cand(far, 0.5)], src, cfg)  # two, but distinct
     low = [cand(T, 0.2), cand(far, 0.18), cand(T, 0.19), cand(T, 0.17)]
     assert not settled(low[0], low, src, cfg)  # many agree, but at a low agreement: the search goes on
-    never = EngineConfig.model_validate({"outer": {"settle_support": 0, "settle_alone": 1.0}})
+    never = EngineConfig.model_validate({"outer": {"settle_support": 0, "settle_alone": 1.0, "settle_full": 1.0}})
     assert not settled(cand(T, 0.95), [cand(T, 0.95)] * 6, src, never)
+    assert not settled(cand(T, 0.95, 1.0), [cand(T, 0.95, 1.0)], src, never)
 
 
 def test_roughness_measures_the_noise_across_the_surface():

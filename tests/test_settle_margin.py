@@ -74,6 +74,35 @@ def test_kinds_and_report_counts():
     assert sm.settling_candidate(rows[2:4], 0.6) is None
 
 
+def test_settle_full_applies_only_to_the_full_overlap_candidate():
+    """``settle_full`` stops the search at the full-overlap hypothesis' candidate (as the engine's
+    ``settled``); a later hypothesis' candidate still needs ``settle_alone``."""
+    def row(pid, order, overlap, agreement, right, rot):
+        return {"pair_id": pid, "level": "scene", "order": order, "overlap": overlap, "agreement": agreement,
+                "right": right, "rot_err_deg": rot}
+
+    a = [row("a", 0, 1.0, 0.46, True, 1.0), row("a", 1, 0.75, 0.60, True, 0.5)]
+    b = [row("b", 0, 1.0, 0.30, False, 150.0), row("b", 1, 0.75, 0.47, False, 170.0),
+         row("b", 2, 0.5, 0.55, True, 0.8)]
+    assert sm.settling_candidate(a, 0.52, full=0.45) is a[0]  # full overlap at 0.46 >= 0.45
+    assert sm.settling_candidate(a, 0.52, full=0.47) is a[1]  # not at 0.47: on to the next hypothesis
+    assert sm.settling_candidate(a, 0.52, full=0.46) is a[0]  # at the threshold itself
+    assert sm.settling_candidate(b, 0.52, full=0.45) is b[2]  # 0.47 is not full overlap: settle_alone holds
+    report = sm.render(a + b, ["scene"], Path("data"), 2, alone=0.52)
+    full = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
+            for line in report.splitlines() if line.startswith("| full ")}
+    # full-overlap candidates >= t (wrong basin, imprecise); stops at right, imprecise, wrong basin
+    assert full["full 0.45"][1:] == ["0", "0", "2", "0", "0"]
+    assert full["full 0.5"][1:] == ["0", "0", "2", "0", "0"]  # a stops later, at its 0.60 candidate
+    assert full["full 0.35"][1:] == ["0", "0", "2", "0", "0"]
+    c = [row("c", 0, 1.0, 0.41, False, 140.0), row("c", 1, 0.75, 0.2, False, 60.0)]
+    report = sm.render(c, ["scene"], Path("data"), 1, alone=0.52)
+    full = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
+            for line in report.splitlines() if line.startswith("| full ")}
+    assert full["full 0.4"][1:] == ["1", "0", "0", "0", "1: c (0.410, hypothesis 1, 140.0°)"]
+    assert full["full 0.42"][1:] == ["0", "0", "0", "0", "0"]
+
+
 def test_report_renders_again_from_the_csv(tmp_path):
     rows = [{"pair_id": "a", "level": "cross", "order": 0, "overlap": 1.0, "agreement": 0.61, "right": True,
              "rot_err_deg": 0.4}, {"pair_id": "a", "level": "cross", "order": 1, "overlap": 0.75,

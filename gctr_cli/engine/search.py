@@ -282,7 +282,8 @@ def settled(best: Candidate, candidates: list[Candidate], src: PreparedCloud, cf
     tried: faster on noisy pairs, but the verdict then misses the rivals of the skipped hypotheses and
     becomes over-confident.)"""
     o = cfg.outer
-    if best.agreement.score >= o.settle_alone:
+    alone = min(o.settle_alone, o.settle_full) if best.overlap >= 1.0 else o.settle_alone
+    if best.agreement.score >= alone:
         return True
     if o.settle_support <= 0 or best.agreement.score < o.settle_agreement:
         return False
