@@ -1154,7 +1154,9 @@ def limits_text(rows, stats, goals, methods, levels, profile, succ_th) -> list[s
             if gm > 0.9 * fm:
                 out.append(f"- The time goal holds by a thin margin (gctr {gm:.2f} s vs {g['fastest']} {fm:.2f} s): "
                            "within run-to-run noise of the machine, so another run may tip it either way.")
-                out.extend(_spread_lines(rows, g["fastest"]))
+            else:
+                out.append(f"- The time goal holds (gctr {gm:.2f} s vs {g['fastest']} {fm:.2f} s).")
+            out.extend(_spread_lines(rows, g["fastest"]))
     for lv in levels:
         bad = [r for r in rows if r["method"] == "gctr" and r["level"] == lv and not r["success"]]
         if not bad or any(f"`{lv}`" in g["goal"] and not g["met"] for g in goals):

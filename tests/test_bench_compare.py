@@ -356,3 +356,16 @@ def test_batch_order_runs_level_by_level_alternating_the_methods():
                      ("icp", "hard"), ("kiss_matcher", "hard"), ("gctr", "hard"),
                      ("gctr", "part"), ("kiss_matcher", "part"), ("icp", "part")]
     assert sorted(order) == sorted((m, lv) for m in ["gctr", "kiss_matcher", "icp"] for lv in ["easy", "hard", "part"])
+
+
+def test_limits_state_how_firm_a_met_time_goal_is():
+    """A met time goal is stated with its bootstrap firmness whether its margin is thin or clear."""
+    rows = ([{"method": "gctr", "pair_id": f"p{i}", "runtime_s": t} for i, t in enumerate([0.2] * 30 + [0.9] * 20)]
+            + [{"method": "kiss", "pair_id": f"p{i}", "runtime_s": 0.3} for i in range(50)])
+    goals = [{"goal": "gctr median time per pair ≤ the fastest global baseline's", "met": True, "fastest": "kiss"}]
+    for gctr_median, thin in ((0.2, False), (0.29, True)):
+        stats = {("gctr", "all"): {"time_med": gctr_median}, ("kiss", "all"): {"time_med": 0.3}}
+        text = "\n".join(bc.limits_text(rows, stats, goals, ["gctr", "kiss"], [], {}, {}))
+        assert ("thin margin" in text) is thin
+        assert ("The time goal holds (gctr 0.20 s vs kiss 0.30 s)" in text) is not thin
+        assert "How firm the median comparison is: ratio 0.67" in text
