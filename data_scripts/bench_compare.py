@@ -1104,7 +1104,8 @@ def _spread_lines(rows: list[dict[str, Any]], fastest: str) -> list[str]:
 
 
 def limits_text(rows, stats, goals, methods, levels, profile, succ_th) -> list[str]:
-    """Plain statements on each goal that is not met: what the numbers say limits it."""
+    """Plain statements on each goal that is not met (what the numbers say limits it), and on the time
+    goal when met (how firm it is)."""
     out: list[str] = []
     if not goals:
         return ["(no goals evaluated: gctr or the baselines were not run)"]

@@ -14,8 +14,8 @@ scores each candidate against the ground truth with the config's success thresho
   thresholds but under 10 degrees off: the right basin, which the verdict's ICP refines) and of a right
   one, each with its pair, hypothesis and rotation error;
 * per threshold, how many candidates of each kind reach it, and at what kind of candidate the search
-  would stop if ``settle_alone`` were that threshold (the pairs stopped at a wrong-basin candidate are
-  listed: the ones that matter);
+  would stop if ``settle_alone`` were that threshold, ``settle_full`` off (the pairs stopped at a
+  wrong-basin candidate are listed: the ones that matter);
 * the same for ``settle_full`` thresholds, with ``settle_alone`` at the config's value.
 
 Re-run it whenever the search or its agreement changes, before touching either threshold. Usage::
@@ -112,9 +112,9 @@ def settling_candidate(pair_rows: list[dict[str, Any]], threshold: float,
     return None
 
 
-def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: int, alone: float = 0.52) -> str:
+def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: int, alone: float) -> str:
     """The markdown report (see the module docstring); ``alone`` is the ``settle_alone`` of the
-    ``settle_full`` table."""
+    ``settle_full`` table (a row ``full t`` stops the full-overlap hypothesis at min(t, alone))."""
     def fmt(r: dict[str, Any] | None) -> str:
         if r is None:
             return "–"
@@ -134,7 +134,8 @@ def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: i
         out.append(f"| {level} | {len({r['pair_id'] for r in sel})} | {len(sel)} | {sum(r['right'] for r in sel)} | "
                    f"{best['wrong basin']} | {best['imprecise']} | {best['right']} |")
     out += ["", "Per threshold t: candidates of any hypothesis with agreement ≥ t, and where the search would stop "
-                "with `settle_alone` = t (after the first hypothesis whose best candidate so far reaches t; "
+                "with `settle_alone` = t and `settle_full` off (after the first hypothesis whose best candidate "
+                "so far reaches t; "
                 "`settle_support` ignored), by the kind of that best candidate; pairs that never reach t run every "
                 "hypothesis.", "",
             "| t | wrong-basin candidates | imprecise candidates | stops at: right | imprecise | wrong basin |",

@@ -100,10 +100,10 @@ class OuterLoopConfig(_Strict):
     settle_agreement: float = Field(0.5, ge=0, le=1, description="... and its surface agreement is at least this")
     settle_alone: float = Field(
         0.52, ge=0, le=1, description="stop the search after a hypothesis whose surface agreement reaches this; "
-                                     "1 = never")
+                                     "1 = never (with settle_full 1)")
     settle_full: float = Field(
-        0.45, ge=0, le=1, description="stop the search after the full-overlap hypothesis (overlap 1, the plan's "
-                                    "first) when its surface agreement reaches this; 1 = only at settle_alone")
+        0.45, ge=0, le=1, description="... the lower of this and settle_alone for the full-overlap hypothesis "
+                                     "(overlap 1 in overlap_candidates, run first); 1 = settle_alone alone")
     settle_round: float = Field(
         0.5, ge=0, le=1, description="stop a hypothesis' outer loop after a round whose best surface agreement "
                                      "reaches this (later rounds only polish what the verdict's ICP refines); "

@@ -57,7 +57,7 @@ def test_kinds_and_report_counts():
             row("b", 0, 0.53, False, 3.0), row("b", 1, 0.20, False, 90.0),
             row("c", 0, 0.45, False, 120.0)]  # exactly at a threshold: counts
     assert [sm.kind(r) for r in rows] == ["right", "wrong basin", "imprecise", "wrong basin", "wrong basin"]
-    report = sm.render(rows, ["hard"], Path("data"), 3)
+    report = sm.render(rows, ["hard"], Path("data"), 3, alone=0.52)
     hard = next(line for line in report.splitlines() if line.startswith("| hard |"))
     assert "| 3 | 5 | 1 |" in hard  # pairs, candidates, right
     assert "0.480 (a, hypothesis 2, 170.0°)" in hard and "0.530 (b, hypothesis 1, 3.0°)" in hard
@@ -88,17 +88,18 @@ def test_settle_full_applies_only_to_the_full_overlap_candidate():
     assert sm.settling_candidate(a, 0.52, full=0.47) is a[1]  # not at 0.47: on to the next hypothesis
     assert sm.settling_candidate(a, 0.52, full=0.46) is a[0]  # at the threshold itself
     assert sm.settling_candidate(b, 0.52, full=0.45) is b[2]  # 0.47 is not full overlap: settle_alone holds
-    report = sm.render(a + b, ["scene"], Path("data"), 2, alone=0.52)
-    full = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
-            for line in report.splitlines() if line.startswith("| full ")}
+    def full_table(rows: list[dict], n_pairs: int) -> dict[str, list[str]]:
+        report = sm.render(rows, ["scene"], Path("data"), n_pairs, alone=0.52)
+        return {line.split("|")[1].strip(): [cell.strip() for cell in line.strip("|").split("|")]
+                for line in report.splitlines() if line.startswith("| full ")}
+
     # full-overlap candidates >= t (wrong basin, imprecise); stops at right, imprecise, wrong basin
+    full = full_table(a + b, 2)
     assert full["full 0.45"][1:] == ["0", "0", "2", "0", "0"]
     assert full["full 0.5"][1:] == ["0", "0", "2", "0", "0"]  # a stops later, at its 0.60 candidate
     assert full["full 0.35"][1:] == ["0", "0", "2", "0", "0"]
-    c = [row("c", 0, 1.0, 0.41, False, 140.0), row("c", 1, 0.75, 0.2, False, 60.0)]
-    report = sm.render(c, ["scene"], Path("data"), 1, alone=0.52)
-    full = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
-            for line in report.splitlines() if line.startswith("| full ")}
+    wrong = [row("c", 0, 1.0, 0.41, False, 140.0), row("c", 1, 0.75, 0.2, False, 60.0)]
+    full = full_table(wrong, 1)
     assert full["full 0.4"][1:] == ["1", "0", "0", "0", "1: c (0.410, hypothesis 1, 140.0°)"]
     assert full["full 0.42"][1:] == ["0", "0", "0", "0", "0"]
 
@@ -115,3 +116,29 @@ def test_report_renders_again_from_the_csv(tmp_path):
         writer.writeheader()
         writer.writerows(rows)
     assert sm.read_rows(path) == rows
+
+
+def test_main_reports_settle_full_with_the_configs_settle_alone(tmp_path):
+    """--from-csv renders without the engine; the settle_full table uses the config's settle_alone (with
+    ``--set`` applied), not the 1.0 that every-hypothesis runs use."""
+    import csv
+
+    rows = [{"pair_id": "a", "level": "cross", "order": 0, "overlap": 1.0, "agreement": 0.49, "right": True,
+             "rot_err_deg": 0.4}, {"pair_id": "a", "level": "cross", "order": 1, "overlap": 0.75,
+                                   "agreement": 0.3, "right": False, "rot_err_deg": 90.0}]
+    path = tmp_path / "c.csv"
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    (tmp_path / "pairs.csv").write_text("pair_id,source,target,gt,model,level\na,s.ply,t.ply,gt.txt,bunny,cross\n",
+                                        encoding="utf-8")
+    out = tmp_path / "r.md"
+    for override, alone, stops in ((None, 0.52, "0"), ("engine.outer.settle_alone=0.48", 0.48, "1")):
+        args = ["--data", str(tmp_path), "--from-csv", str(path), "--out", str(out), "--levels", "cross"]
+        assert sm.main([*args, *(["--set", override] if override else [])]) == 0
+        report = out.read_text(encoding="utf-8")
+        assert f"`settle_alone` = {alone})" in report
+        full = next(line for line in report.splitlines() if line.startswith("| full 0.5 |"))
+        # the full-overlap row t = 0.5 stops at min(0.5, settle_alone): the right 0.49 candidate only at 0.48
+        assert full.split("|")[4].strip() == stops
