@@ -103,7 +103,7 @@ class OuterLoopConfig(_Strict):
                                      "1 = never (with settle_full 1)")
     settle_full: float = Field(
         0.45, ge=0, le=1, description="... the lower of this and settle_alone for the full-overlap hypothesis "
-                                     "(overlap 1 in overlap_candidates, run first); 1 = settle_alone alone")
+                                     "(overlap 1 in overlap_candidates, run first); 1 = no lower threshold for it")
     settle_round: float = Field(
         0.5, ge=0, le=1, description="stop a hypothesis' outer loop after a round whose best surface agreement "
                                      "reaches this (later rounds only polish what the verdict's ICP refines); "
