@@ -104,33 +104,34 @@ def test_settle_full_applies_only_to_the_full_overlap_candidate():
     assert full["full 0.42"][1:] == ["0", "0", "0", "0", "0"]
 
 
-def test_report_renders_again_from_the_csv(tmp_path):
-    rows = [{"pair_id": "a", "level": "cross", "order": 0, "overlap": 1.0, "agreement": 0.61, "right": True,
-             "rot_err_deg": 0.4}, {"pair_id": "a", "level": "cross", "order": 1, "overlap": 0.75,
-                                   "agreement": 0.3, "right": False, "rot_err_deg": 90.0}]
-    path = tmp_path / "c.csv"
-    with open(path, "w", newline="") as fh:
-        import csv
+def _two_candidates(first_agreement: float) -> list[dict]:
+    """One `cross` pair: a right full-overlap candidate, then a wrong overlap-0.75 one."""
+    return [{"pair_id": "a", "level": "cross", "order": 0, "overlap": 1.0, "agreement": first_agreement,
+             "right": True, "rot_err_deg": 0.4},
+            {"pair_id": "a", "level": "cross", "order": 1, "overlap": 0.75, "agreement": 0.3, "right": False,
+             "rot_err_deg": 90.0}]
 
+
+def _write_candidates(path: Path, rows: list[dict]) -> Path:
+    """``rows`` as a ``--csv`` file of settle_margin."""
+    import csv
+
+    with open(path, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    assert sm.read_rows(path) == rows
+    return path
+
+
+def test_report_renders_again_from_the_csv(tmp_path):
+    rows = _two_candidates(0.61)
+    assert sm.read_rows(_write_candidates(tmp_path / "c.csv", rows)) == rows
 
 
 def test_main_reports_settle_full_with_the_configs_settle_alone(tmp_path):
     """--from-csv renders without the engine; the settle_full table uses the config's settle_alone (with
     ``--set`` applied), not the 1.0 that every-hypothesis runs use."""
-    import csv
-
-    rows = [{"pair_id": "a", "level": "cross", "order": 0, "overlap": 1.0, "agreement": 0.49, "right": True,
-             "rot_err_deg": 0.4}, {"pair_id": "a", "level": "cross", "order": 1, "overlap": 0.75,
-                                   "agreement": 0.3, "right": False, "rot_err_deg": 90.0}]
-    path = tmp_path / "c.csv"
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    path = _write_candidates(tmp_path / "c.csv", _two_candidates(0.49))
     (tmp_path / "pairs.csv").write_text("pair_id,source,target,gt,model,level\na,s.ply,t.ply,gt.txt,bunny,cross\n",
                                         encoding="utf-8")
     out = tmp_path / "r.md"

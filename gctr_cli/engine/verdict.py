@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
-from gctr_cli.geometry import apply
+from gctr_cli.geometry import apply, invert
 
 
 @dataclass(frozen=True)
@@ -205,7 +205,7 @@ def shared_displacement(T: np.ndarray, T_answer: np.ndarray, shared: SharedData,
     enough_source, enough_target = (len(side) >= MIN_SHARED_POINTS for side in (shared.source, shared.target))
     whole = displacement(T, T_answer, sample) if not (enough_source and enough_target) else 0.0
     on_source = displacement(T, T_answer, shared.source) if enough_source else whole
-    on_target = (_rms(apply(T_answer, apply(np.linalg.inv(T), shared.target)) - shared.target) if enough_target
+    on_target = (_rms(apply(T_answer, apply(invert(T), shared.target)) - shared.target) if enough_target
                  else whole)
     return max(on_source, on_target)
 
