@@ -17,7 +17,9 @@ What it measures, per pair (manifest order, seed = ``derive_seed(config.seed, pa
   timings (``RegistrationResult.timings``);
 * memory: each pair runs in a *fresh* child process (multiprocessing ``spawn`` context, one process
   per pair, ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` etc. (``gctr_cli.fsutil.THREAD_ENV_VARS``, as
-  in batch workers) = 1 in its environment before numpy is imported), so the child's peak resident set
+  in batch workers) = 1 in its environment before numpy is imported, and glibc's malloc set up as
+  ``gctr register`` and the batch workers set it up: ``gctr_cli.allocator.keep_freed_memory``), so the
+  child's peak resident set
   is the pair's peak memory. It includes the interpreter + imports baseline, which is also recorded
   (resident set right before the clouds are loaded) so the pair's own increment is visible.
 
@@ -89,6 +91,7 @@ from data_scripts.common import (
     sweep_thresholds,
     usable_transform,
 )
+from gctr_cli.allocator import keep_freed_memory
 from gctr_cli.batch import flatten_dict
 from gctr_cli.fsutil import THREAD_ENV_VARS, set_parent_death_signal, single_thread_env
 
@@ -243,6 +246,7 @@ def diagnose_failure(source, target, T_answer, T_gt, engine_config, seed: int) -
 def _child_main(task: dict[str, Any], conn: Any) -> None:
     """Entry point of a spawned child: run one pair, send its row (or the error) back, exit."""
     set_parent_death_signal()  # a killed benchmark must not leave a child computing
+    keep_freed_memory()  # as gctr register and the batch workers do
     try:
         row = run_one(task)
     except BaseException as exc:  # noqa: BLE001 - every problem becomes that pair's row

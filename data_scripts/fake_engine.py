@@ -108,3 +108,11 @@ def slow_register(source, target, config=None, seed=0):
 def register_without_confidence(source, target, config=None, seed=0):
     """Like :func:`register`, for a method that computes no confidence (NaN)."""
     return replace(register(source, target, config, seed), confidence=float("nan"))
+
+
+def register_reporting_allocator(source, target, config=None, seed=0):
+    """Like :func:`register`, with the message telling whether this process set up glibc's malloc
+    (:func:`gctr_cli.allocator.keep_freed_memory`): the batch workers must."""
+    from gctr_cli import allocator
+
+    return replace(register(source, target, config, seed), message=f"allocator set up: {allocator._applied}")

@@ -21,6 +21,7 @@ from collections.abc import Iterator, Sequence
 from multiprocessing.connection import wait as _mp_wait
 from typing import Any
 
+from gctr_cli.allocator import keep_freed_memory
 from gctr_cli.config import Config
 from gctr_cli.fsutil import THREAD_ENV_VARS, set_parent_death_signal, single_thread_env
 from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
@@ -58,6 +59,7 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     ``("done", PairOutcome)`` when it is finished. ``None`` or a closed pipe ends the loop.
     """
     set_parent_death_signal()
+    keep_freed_memory()
     if os.getppid() != parent_pid:  # parent died before prctl took effect
         os._exit(1)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's business

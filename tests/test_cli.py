@@ -516,3 +516,14 @@ def test_register_and_apply_as_processes_write_everything_before_the_fast_exit(t
                                rtol=0, atol=1e-9 * float(np.abs(load_point_cloud(tgt)).max()))
     missing = gctr("register", tmp_path / "nope.ply", tgt, env=subprocess_env)
     assert missing.returncode == 2 and "nope.ply" in missing.stderr
+
+
+def test_register_sets_up_the_allocator(runner, fake_register, four_pairs, monkeypatch):
+    import gctr_cli.allocator
+
+    calls = []
+    monkeypatch.setattr(gctr_cli.allocator, "keep_freed_memory", lambda: calls.append(1) or True)
+    row = four_pairs.rows[0]
+    res = invoke(runner, "register", four_pairs.root / row["source"], four_pairs.root / row["target"])
+    assert res.exit_code == 0, res.output
+    assert calls == [1]
