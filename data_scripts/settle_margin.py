@@ -48,30 +48,22 @@ def candidates_of(task: dict[str, Any]) -> list[dict[str, Any]]:
     """Every overlap hypothesis' candidate of one pair, in plan order, scored against the ground truth."""
     import numpy as np
 
-    import gctr_cli.engine.gctr as engine
     from gctr_cli.config import config_from_dict
-    from gctr_cli.engine.preprocess import denormalise, normalise, validate_cloud
+    from gctr_cli.engine.gctr import run_search
+    from gctr_cli.engine.prepare import StageTimer
+    from gctr_cli.engine.preprocess import DegenerateCloudError, denormalise
     from gctr_cli.io import load_point_cloud, read_matrix
     from gctr_cli.metrics import transform_errors
 
     config = config_from_dict(task["config"], "<settle_margin config>")
     source, target = load_point_cloud(task["source"]), load_point_cloud(task["target"])
     T_gt = read_matrix(task["gt"])
-    seen: list[Any] = []
-    search = engine.search
-
-    def recording_search(*args: Any, **kwargs: Any) -> Any:
-        found = search(*args, **kwargs)
-        seen.extend(found)
-        return found
-
-    engine.search = recording_search  # this worker process only; restored below
+    # the engine's own stages 1-4 with the same seed as `register` (the verdict is not needed here)
     try:
-        engine.register(source, target, config.engine, seed=int(task["seed"]))
-    finally:
-        engine.search = search
-    # register normalises exactly so (no random draw): the candidates are in these coordinates
-    ns, nt = normalise(validate_cloud(source, "source")), normalise(validate_cloud(target, "target"))
+        run = run_search(source, target, config.engine, int(task["seed"]), StageTimer({}))
+    except DegenerateCloudError:  # register gives up on such a pair before any candidate
+        return []
+    ns, nt, seen = run.norm_source, run.norm_target, run.candidates
     diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
     s = config.success
     rows = []

@@ -143,3 +143,19 @@ def test_main_reports_settle_full_with_the_configs_settle_alone(tmp_path):
         full = next(line for line in report.splitlines() if line.startswith("| full 0.5 |"))
         # the full-overlap row t = 0.5 stops at min(0.5, settle_alone): the right 0.49 candidate only at 0.48
         assert full.split("|")[4].strip() == stops
+
+
+def test_a_pair_the_engine_cannot_work_on_has_no_candidates(tmp_path):
+    """Scattered clouds (no salient points): no candidate rows, as ``register`` fails before any, instead
+    of an exception that would stop the whole run."""
+    from gctr_cli.geometry import to_matrix
+    from gctr_cli.io import save_point_cloud, write_matrix
+
+    pts = np.random.default_rng(3).normal(size=(200, 3))
+    save_point_cloud(tmp_path / "s.ply", pts)
+    save_point_cloud(tmp_path / "t.ply", pts * 2.0 + 1.0)
+    write_matrix(tmp_path / "gt.txt", to_matrix(2.0, np.eye(3), [1.0, 1.0, 1.0]))
+    _, config_dict = be.resolve_config(None, sm.NEVER_SETTLE)
+    task = {"pair_id": "scattered", "level": "easy", "model": "none", "seed": 0, "config": config_dict,
+            "source": str(tmp_path / "s.ply"), "target": str(tmp_path / "t.ply"), "gt": str(tmp_path / "gt.txt")}
+    assert sm.candidates_of(task) == []

@@ -2,6 +2,7 @@
 
 ``register(source, target, config, seed)`` → :class:`RegistrationResult` with the similarity that
 maps the source onto the target, in the original coordinates of the inputs, and a ``confidence``.
+:func:`run_search` is its stages 1-4 alone, for developer tools that look at every candidate.
 
 Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
 
@@ -36,16 +37,17 @@ generators spawned from ``seed``.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine.decide import decide, refusal_message
-from gctr_cli.engine.prepare import RefinementCloud, StageTimer, prepare_cloud
-from gctr_cli.engine.preprocess import DegenerateCloudError, denormalise, normalise, validate_cloud
+from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, prepare_cloud
+from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, normalise, validate_cloud
 from gctr_cli.engine.refine import evaluate_fit
 from gctr_cli.engine.result import RegistrationResult
-from gctr_cli.engine.search import search, search_plan
+from gctr_cli.engine.search import Candidate, search, search_plan
 from gctr_cli.engine.verdict import displacement, surface_agreement
 from gctr_cli.geometry import split
 
@@ -58,6 +60,48 @@ def _failed(message: str, seed: int, start: float, timings: dict[str, float],
                               fitness=0.0, inlier_rmse=float("nan"), n_inliers=0, iterations=0, status="failed",
                               message=message, runtime_s=time.perf_counter() - start, seed=seed, confidence=0.0,
                               timings=timings)
+
+
+@dataclass(frozen=True)
+class SearchRun:
+    """Stages 1-4 of one pair (:func:`run_search`): the candidates the verdict chooses among, and what
+    it needs besides them. Everything in normalised coordinates."""
+
+    norm_source: NormalisedCloud
+    norm_target: NormalisedCloud
+    source: PreparedCloud
+    target: PreparedCloud
+    bounds_n: tuple[float, float]  # the configured scale bounds in normalised units
+    candidates: list[Candidate]  # one per overlap hypothesis run, in the plan's order
+    rng_refine: np.random.Generator  # the verdict's generator (spawned with the others from the seed)
+
+
+def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int,
+               timer: StageTimer) -> SearchRun:
+    """Validate, normalise and prepare both clouds and run the overlap search (stages 1-4).
+
+    :func:`register` continues with the verdict; developer tools (``data_scripts.settle_margin``)
+    score the candidates themselves. Raises :class:`DegenerateCloudError` for clouds the engine
+    cannot work on.
+    """
+    src_raw = validate_cloud(source, "source")
+    tgt_raw = validate_cloud(target, "target")
+    plan = search_plan(cfg)
+    root = np.random.SeedSequence(seed)
+    rng_src, rng_tgt, rng_refine, *rng_overlaps = [np.random.default_rng(s) for s in root.spawn(3 + len(plan))]
+    ns, nt = normalise(src_raw), normalise(tgt_raw)
+    src = prepare_cloud(ns.points, cfg, rng_src, timer)
+    tgt = prepare_cloud(nt.points, cfg, rng_tgt, timer)
+    if len(src.salient) < 4 or len(tgt.salient) < 4:
+        raise DegenerateCloudError(f"too few salient points (source {len(src.salient)}, target "
+                                   f"{len(tgt.salient)}); the clouds are too small or too sparse for the "
+                                   "supervoxel resolution")
+    # Scale bounds in normalised units: s_orig = s_norm * size_t / size_s.
+    lo, hi = cfg.scale_bounds
+    ratio = ns.size / nt.size
+    bounds_n = (lo * ratio, hi * ratio)
+    candidates = search(src, tgt, plan, rng_overlaps, bounds_n, cfg, timer)
+    return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine)
 
 
 def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None = None, seed: int = 0, *,
@@ -74,36 +118,19 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     start = time.perf_counter()
     timer = StageTimer({})
     try:
-        src_raw = validate_cloud(source, "source")
-        tgt_raw = validate_cloud(target, "target")
+        run = run_search(source, target, cfg, seed, timer)
     except DegenerateCloudError as err:
         return _failed(str(err), seed, start, timer.timings)
-
-    plan = search_plan(cfg)
-    root = np.random.SeedSequence(seed)
-    rng_src, rng_tgt, rng_refine, *rng_overlaps = [np.random.default_rng(s) for s in root.spawn(3 + len(plan))]
-    ns, nt = normalise(src_raw), normalise(tgt_raw)
-    src = prepare_cloud(ns.points, cfg, rng_src, timer)
-    tgt = prepare_cloud(nt.points, cfg, rng_tgt, timer)
-    if len(src.salient) < 4 or len(tgt.salient) < 4:
-        return _failed(f"too few salient points (source {len(src.salient)}, target {len(tgt.salient)}); "
-                       "the clouds are too small or too sparse for the supervoxel resolution", seed, start,
-                       timer.timings)
-
-    # Scale bounds in normalised units: s_orig = s_norm * size_t / size_s.
-    lo, hi = cfg.scale_bounds
-    ratio = ns.size / nt.size
-    bounds_n = (lo * ratio, hi * ratio)
-
-    candidates = search(src, tgt, plan, rng_overlaps, bounds_n, cfg, timer)
+    ns, nt, src, tgt, bounds_n, candidates = (run.norm_source, run.norm_target, run.source, run.target,
+                                              run.bounds_n, run.candidates)
     if not candidates:
         return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
                        timer.timings)
 
     t = time.perf_counter()
     refine_before = timer.timings.get("refine", 0.0)
-    src_ref = RefinementCloud.of(src, ns.points, cfg, rng_refine)
-    tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, rng_refine)
+    src_ref = RefinementCloud.of(src, ns.points, cfg, run.rng_refine)
+    tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, run.rng_refine)
     T_n, verdict = decide(candidates, src, src_ref, tgt_ref, cfg, bounds_n, timer)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.
@@ -113,6 +140,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         timer.timings.get("refine", 0.0) - refine_before)
     T = denormalise(T_n, ns, nt)
     scale, rotation, translation = split(T)
+    lo, hi = cfg.scale_bounds
     status, message = "ok", ""
     if best.n_inliers < cfg.ransac.min_inliers:
         status, message = "failed", (f"too weak evidence: {best.n_inliers} RANSAC inliers "
