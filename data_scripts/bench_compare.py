@@ -52,7 +52,7 @@ import os
 from gctr_cli.fsutil import THREAD_ENV_VARS  # no numpy import: safe before the thread caps are set
 
 for _var in THREAD_ENV_VARS:
-    os.environ.setdefault(_var, "1")  # the in-process stage profile runs like a batch worker
+    os.environ.setdefault(_var, "1")  # the in-process stage profile runs single-threaded, as a batch worker
 
 import argparse  # noqa: E402
 import csv  # noqa: E402

@@ -113,6 +113,6 @@ def register_without_confidence(source, target, config=None, seed=0):
 def register_reporting_allocator(source, target, config=None, seed=0):
     """Like :func:`register`, with the message telling whether this process set up glibc's malloc
     (:func:`gctr_cli.allocator.keep_freed_memory`): the batch workers must."""
-    from gctr_cli import allocator
+    from gctr_cli.allocator import is_set_up
 
-    return replace(register(source, target, config, seed), message=f"allocator set up: {allocator._applied}")
+    return replace(register(source, target, config, seed), message=f"allocator set up: {is_set_up()}")

@@ -63,11 +63,11 @@ def candidates_of(task: dict[str, Any]) -> list[dict[str, Any]]:
         run = run_search(source, target, config.engine, int(task["seed"]), StageTimer({}))
     except DegenerateCloudError:  # register gives up on such a pair before any candidate
         return []
-    ns, nt, seen = run.norm_source, run.norm_target, run.candidates
+    ns, nt, candidates = run.norm_source, run.norm_target, run.candidates
     diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
     s = config.success
     rows = []
-    for order, cand in enumerate(seen):
+    for order, cand in enumerate(candidates):
         err = transform_errors(denormalise(cand.transform, ns, nt), T_gt, diagonal,
                                source_centre=source.mean(axis=0))
         rows.append({"pair_id": task["pair_id"], "level": task["level"], "order": order,

@@ -22,12 +22,15 @@ from __future__ import annotations
 import ctypes
 import os
 
-__all__ = ["MMAP_THRESHOLD", "TRIM_THRESHOLD", "keep_freed_memory"]
+__all__ = ["MMAP_THRESHOLD", "TRIM_THRESHOLD", "USER_SETTINGS", "is_set_up", "keep_freed_memory"]
 
 #: blocks at least this large still get their own ``mmap`` (and go back to the kernel when freed)
 MMAP_THRESHOLD = 32 << 20
 #: free memory at the top of the heap is returned to the kernel only above this much
 TRIM_THRESHOLD = 128 << 20
+
+#: environment variables by which a user tunes glibc's malloc themselves (then gctr leaves it alone)
+USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
 
 # mallopt parameters (glibc's malloc.h)
 _M_TRIM_THRESHOLD = -1
@@ -40,7 +43,7 @@ def keep_freed_memory() -> bool:
     """Set glibc's mmap and trim thresholds for this process (once); True when they are set.
 
     A no-op returning False on a C library other than glibc (macOS, musl), where ``mallopt`` is
-    missing or means something else.
+    missing or means something else, and when the user set :data:`USER_SETTINGS`.
     """
     global _applied
     if _applied is None:
@@ -48,7 +51,14 @@ def keep_freed_memory() -> bool:
     return _applied
 
 
+def is_set_up() -> bool:
+    """Whether :func:`keep_freed_memory` set the thresholds in this process."""
+    return bool(_applied)
+
+
 def _set_thresholds() -> bool:
+    if any(os.environ.get(name) for name in USER_SETTINGS):
+        return False
     try:
         if not os.confstr("CS_GNU_LIBC_VERSION"):
             return False
@@ -60,4 +70,6 @@ def _set_thresholds() -> bool:
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    mmap_set = mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+    trim_set = mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+    return bool(mmap_set) and bool(trim_set)

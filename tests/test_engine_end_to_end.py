@@ -344,22 +344,29 @@ def test_scattered_points_fail_gracefully(n):
     assert "too few salient points" in res.message or "too weak evidence" in res.message, res.message
 
 
-def test_run_search_is_registers_search():
+def test_run_search_is_registers_search(monkeypatch):
     """``run_search`` (stages 1-4, for developer tools) raises on what ``register`` reports as failed,
-    with the same message, and finds the candidates ``register`` chooses among."""
-    from gctr_cli.engine.gctr import run_search
+    with the same message, and finds exactly the candidates ``register`` decides among."""
+    import gctr_cli.engine.gctr as engine
     from gctr_cli.engine.prepare import StageTimer
-    from gctr_cli.engine.preprocess import DegenerateCloudError, denormalise
+    from gctr_cli.engine.preprocess import DegenerateCloudError
 
     pts = np.random.default_rng(3).normal(size=(200, 3))
     with pytest.raises(DegenerateCloudError, match="too few salient points") as err:
-        run_search(pts, pts * 2.0 + 1.0, EngineConfig(), 0, StageTimer({}))
+        engine.run_search(pts, pts * 2.0 + 1.0, EngineConfig(), 0, StageTimer({}))
     assert register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0).message == str(err.value)
 
-    case, result = bunny_case(0), registered("bunny", 0)
-    run = run_search(case.source, case.target, EngineConfig(), 0, StageTimer({}))
-    assert result.ok and run.candidates
-    # the answer is the refined candidate of the hypothesis it reports; unrefined, it is already near
-    chosen = next(c for c in run.candidates if c.overlap == result.overlap)
-    assert case.errors(denormalise(chosen.transform, run.norm_source, run.norm_target)).rot_err_deg < 5.0
-    assert case.errors(result.transform).rot_err_deg < 2.0
+    decided = []
+    decide = engine.decide
+
+    def recording_decide(candidates, *args, **kwargs):
+        decided.extend(candidates)
+        return decide(candidates, *args, **kwargs)
+
+    monkeypatch.setattr(engine, "decide", recording_decide)
+    case = bunny_case(0)
+    result = engine.register(case.source, case.target, EngineConfig(), seed=0)
+    run = engine.run_search(case.source, case.target, EngineConfig(), 0, StageTimer({}))
+    assert result.ok and len(run.candidates) == len(decided) > 0
+    for ours, theirs in zip(run.candidates, decided):
+        assert ours.overlap == theirs.overlap and np.array_equal(ours.transform, theirs.transform)

@@ -145,17 +145,18 @@ def test_main_reports_settle_full_with_the_configs_settle_alone(tmp_path):
         assert full.split("|")[4].strip() == stops
 
 
-def test_a_pair_the_engine_cannot_work_on_has_no_candidates(tmp_path):
-    """Scattered clouds (no salient points): no candidate rows, as ``register`` fails before any, instead
-    of an exception that would stop the whole run."""
+def test_a_pair_the_engine_rejects_has_no_candidates(tmp_path):
+    """A planar source (``register`` fails it before any search) gives no candidate rows instead of an
+    exception that would stop the whole run."""
     from gctr_cli.geometry import to_matrix
     from gctr_cli.io import save_point_cloud, write_matrix
 
-    pts = np.random.default_rng(3).normal(size=(200, 3))
-    save_point_cloud(tmp_path / "s.ply", pts)
-    save_point_cloud(tmp_path / "t.ply", pts * 2.0 + 1.0)
-    write_matrix(tmp_path / "gt.txt", to_matrix(2.0, np.eye(3), [1.0, 1.0, 1.0]))
+    rng = np.random.default_rng(3)
+    plane = np.column_stack([rng.uniform(-1, 1, size=(2000, 2)), np.zeros(2000)])
+    save_point_cloud(tmp_path / "s.ply", plane)
+    save_point_cloud(tmp_path / "t.ply", rng.normal(size=(2000, 3)))
+    write_matrix(tmp_path / "gt.txt", to_matrix(1.0, np.eye(3), [0.0, 0.0, 0.0]))
     _, config_dict = be.resolve_config(None, sm.NEVER_SETTLE)
-    task = {"pair_id": "scattered", "level": "easy", "model": "none", "seed": 0, "config": config_dict,
+    task = {"pair_id": "planar", "level": "easy", "model": "none", "seed": 0, "config": config_dict,
             "source": str(tmp_path / "s.ply"), "target": str(tmp_path / "t.ply"), "gt": str(tmp_path / "gt.txt")}
     assert sm.candidates_of(task) == []

@@ -72,8 +72,8 @@ class SearchRun:
     source: PreparedCloud
     target: PreparedCloud
     bounds_n: tuple[float, float]  # the configured scale bounds in normalised units
-    candidates: list[Candidate]  # one per overlap hypothesis run, in the plan's order
-    rng_refine: np.random.Generator  # the verdict's generator (spawned with the others from the seed)
+    candidates: list[Candidate]  # one per hypothesis run that found one, in the plan's order
+    rng_refine: np.random.Generator  # the verdict's generator (spawned with the others; drawn from once)
 
 
 def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int,
