@@ -112,7 +112,9 @@ def register_without_confidence(source, target, config=None, seed=0):
 
 def register_reporting_allocator(source, target, config=None, seed=0):
     """Like :func:`register`, with the message telling whether this process set up glibc's malloc
-    (:func:`gctr_cli.allocator.keep_freed_memory`): the batch workers must."""
-    from gctr_cli.allocator import is_set_up
+    (:func:`gctr_cli.allocator.keep_freed_memory`; the local pool's workers must) and the malloc
+    variables it started with (gctr's own dask LocalCluster must pass gctr's)."""
+    from gctr_cli.allocator import USER_SETTINGS, is_set_up
 
-    return replace(register(source, target, config, seed), message=f"allocator set up: {is_set_up()}")
+    started_with = " ".join(f"{name}={os.environ.get(name)}" for name in USER_SETTINGS)
+    return replace(register(source, target, config, seed), message=f"allocator set up: {is_set_up()}; {started_with}")

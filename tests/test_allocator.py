@@ -84,7 +84,9 @@ def test_the_thresholds_are_set_once_per_process(monkeypatch):
     assert calls == [1] and allocator.is_set_up()
 
 
-def test_batch_workers_set_up_the_allocator(four_pairs, fast_config, tmp_path):
+def test_batch_workers_set_up_the_allocator(four_pairs, fast_config, tmp_path, monkeypatch):
+    for name in allocator.USER_SETTINGS:  # a dask nanny started by an earlier test may have set them here
+        monkeypatch.delenv(name, raising=False)
     run_batch(four_pairs.specs()[:2], fast_config, tmp_path / "out", workers=1,
               register_fn=fake_engine.register_reporting_allocator)
     rows = (tmp_path / "out" / "transforms.csv").read_text().splitlines()

@@ -229,3 +229,30 @@ def test_real_engine_pair_is_identical_on_dask_and_local(tmp_path, scheduler):
     assert (tmp_path / "dask" / "matrices" / "real.txt").read_bytes() == \
         (tmp_path / "local" / "matrices" / "real.txt").read_bytes()
     assert np.abs(read_matrix(tmp_path / "dask" / "matrices" / "real.txt") - T).max() < 0.1
+
+
+@pytest.mark.slow
+def test_gctrs_own_local_cluster_starts_workers_with_gctrs_malloc_settings(four_pairs, fast_config, tmp_path,
+                                                                          monkeypatch):
+    """Not dask's MALLOC_TRIM_THRESHOLD_=65536 (with it, a real pair took 0.29 s instead of 0.18 s)."""
+    from gctr_cli.allocator import MMAP_THRESHOLD, TRIM_THRESHOLD, USER_SETTINGS
+
+    for name in USER_SETTINGS:  # the nanny lets them win; the module's cluster fixture set them here
+        monkeypatch.delenv(name, raising=False)
+
+    run_batch(four_pairs.specs()[:2], fast_config, tmp_path / "out", workers=1,
+              register_fn=fake_engine.register_reporting_allocator, executor="dask")
+    rows = read_csv(tmp_path / "out" / "transforms.csv")[1]
+    expected = f"MALLOC_MMAP_THRESHOLD_={MMAP_THRESHOLD} MALLOC_TRIM_THRESHOLD_={TRIM_THRESHOLD}"
+    assert len(rows) == 2 and all(expected in row["message"] for row in rows), [r["message"] for r in rows]
+
+
+def test_the_local_clusters_malloc_settings_keep_a_users_dask_config():
+    from gctr_cli.allocator import malloc_environment
+
+    dask_default = {"MALLOC_TRIM_THRESHOLD_": 65536, "OMP_NUM_THREADS": 1}
+    assert dask_executor._pre_spawn_environment(dask_default) == {"OMP_NUM_THREADS": 1, **malloc_environment()}
+    assert dask_executor._pre_spawn_environment({}) == malloc_environment()
+    for users in ({"MALLOC_TRIM_THRESHOLD_": 0}, {"MALLOC_MMAP_THRESHOLD_": 1 << 20},
+                  {"MALLOC_TRIM_THRESHOLD_": "65536", "MALLOC_MMAP_THRESHOLD_": "131072"}):
+        assert dask_executor._pre_spawn_environment(users) == users
