@@ -14,11 +14,10 @@ the peak itself does not change.
 measure the engine as those paths run it). The dask LocalCluster that ``gctr batch --executor dask``
 starts itself gets the same settings as environment variables (:func:`malloc_environment`), in
 place of dask's own default, ``MALLOC_TRIM_THRESHOLD_=65536`` (a dask config that sets the malloc
-variables otherwise is kept): with that default every array above
-128 kB is mapped and faulted in afresh, and a pair took 0.29 s instead of 0.18 s (median, the 30
-easy pairs of the report set, 2 workers). Workers of an external cluster keep the cluster's settings
-(see docs/cluster.md). It changes nothing but the allocator's bookkeeping: the results are
-bit-identical with and without it.
+variables otherwise is kept): with that default every array above 128 kB is mapped and faulted in
+afresh, and a pair took 0.29 s instead of 0.18 s (median, the 30 easy pairs of the report set, 2
+workers). Workers of an external cluster keep the cluster's settings (see docs/cluster.md). It
+changes nothing but the allocator's bookkeeping: the results are bit-identical with and without it.
 """
 
 from __future__ import annotations
