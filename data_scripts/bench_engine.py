@@ -19,9 +19,9 @@ What it measures, per pair (manifest order, seed = ``derive_seed(config.seed, pa
   per pair, ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` etc. (``gctr_cli.fsutil.THREAD_ENV_VARS``, as
   in batch workers) = 1 in its environment before numpy is imported, and glibc's malloc set up as
   ``gctr register`` and the batch workers set it up: ``gctr_cli.allocator.keep_freed_memory``), so the
-  child's peak resident set
-  is the pair's peak memory. It includes the interpreter + imports baseline, which is also recorded
-  (resident set right before the clouds are loaded) so the pair's own increment is visible.
+  child's peak resident set is the pair's peak memory. It includes the interpreter + imports
+  baseline, which is also recorded (resident set right before the clouds are loaded) so the pair's own
+  increment is visible.
 
   The peak is read from ``VmHWM`` in ``/proc/self/status`` (the high-water mark of the child's own
   address space). ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` is recorded too (column

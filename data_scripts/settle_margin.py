@@ -95,11 +95,13 @@ def settling_candidate(pair_rows: list[dict[str, Any]], threshold: float,
     (``full`` when that candidate is the full-overlap hypothesis', as the engine's ``settled``): the
     answer's basin if ``settle_alone`` were ``threshold`` and ``settle_full`` ``full``; ``None`` if no
     candidate reaches it."""
+    from gctr_cli.engine.search import settle_threshold
+
     best: dict[str, Any] | None = None
     for r in sorted(pair_rows, key=lambda r: r["order"]):
         if best is None or r["agreement"] > best["agreement"]:
             best = r
-        if best["agreement"] >= (min(threshold, full) if best["overlap"] >= 1.0 else threshold):
+        if best["agreement"] >= settle_threshold(best["overlap"], threshold, full):
             return best
     return None
 

@@ -25,16 +25,13 @@ from __future__ import annotations
 import ctypes
 import os
 
-__all__ = ["DASK_DEFAULT_TRIM_THRESHOLD", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "USER_SETTINGS", "is_set_up",
-           "keep_freed_memory", "malloc_environment"]
+__all__ = ["MMAP_THRESHOLD", "TRIM_THRESHOLD", "USER_SETTINGS", "is_set_up", "keep_freed_memory",
+           "malloc_environment"]
 
 #: blocks at least this large still get their own ``mmap`` (and go back to the kernel when freed)
 MMAP_THRESHOLD = 32 << 20
 #: free memory at the top of the heap is returned to the kernel only above this much
 TRIM_THRESHOLD = 128 << 20
-
-#: what dask's nanny sets ``MALLOC_TRIM_THRESHOLD_`` to unless its config says otherwise
-DASK_DEFAULT_TRIM_THRESHOLD = 65536
 
 #: environment variables by which a user tunes glibc's malloc themselves (then gctr leaves it alone)
 USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")

@@ -58,7 +58,7 @@ from collections import deque
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from gctr_cli.allocator import DASK_DEFAULT_TRIM_THRESHOLD, malloc_environment
+from gctr_cli.allocator import malloc_environment
 from gctr_cli.config import Config
 from gctr_cli.errors import BatchError, ExecutorLost
 from gctr_cli.fsutil import THREAD_ENV_VARS
@@ -217,12 +217,15 @@ def run_task(spec: Any, seed: int, config: Config, register_ref: str | None, sna
 # ----------------------------------------------------------------------------------------------------
 
 
+#: what dask's nanny sets ``MALLOC_TRIM_THRESHOLD_`` to unless its config says otherwise
+DASK_DEFAULT_TRIM_THRESHOLD = 65536
+
+
 def _pre_spawn_environment(configured: dict[str, Any]) -> dict[str, Any]:
     """The nanny's ``pre-spawn-environ`` for gctr's own LocalCluster: the configured one, with gctr's
-    malloc settings (:mod:`gctr_cli.allocator`) in place of dask's default ``MALLOC_TRIM_THRESHOLD_``
-    (with it a pair takes 1.5x as long). A config that sets the malloc variables otherwise is kept, and
-    the nanny lets a variable already in the environment win. It sets them before it starts a worker
-    process, the only time glibc reads them."""
+    malloc settings (:mod:`gctr_cli.allocator`) for dask's default ``MALLOC_TRIM_THRESHOLD_`` (a pair
+    takes 1.5x as long with it); other malloc settings are kept, and so is a variable already in the
+    environment (the nanny's rule). Set before a worker process starts, the only time glibc reads them."""
     trim = configured.get("MALLOC_TRIM_THRESHOLD_")
     if "MALLOC_MMAP_THRESHOLD_" in configured or trim not in (None, DASK_DEFAULT_TRIM_THRESHOLD,
                                                               str(DASK_DEFAULT_TRIM_THRESHOLD)):

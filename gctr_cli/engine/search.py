@@ -273,6 +273,13 @@ def _run_hypothesis(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapH
     return outer_loop(src, tgt, H3, hypothesis.overlap, cfg, rng, prior, timer)
 
 
+def settle_threshold(overlap: float, settle_alone: float, settle_full: float) -> float:
+    """The surface agreement at which a candidate of the hypothesis ``overlap`` settles the search
+    alone: ``settle_alone``, or the lower of it and ``settle_full`` for the full-overlap hypothesis
+    (see :func:`settled`)."""
+    return min(settle_alone, settle_full) if overlap >= 1.0 else settle_alone
+
+
 def settled(best: Candidate, candidates: list[Candidate], src: PreparedCloud, cfg: EngineConfig) -> bool:
     """The search can stop early when independent overlap hypotheses already ended at the same,
     well-supported transform (``outer.settle_support`` of them, agreement at least
@@ -288,8 +295,7 @@ def settled(best: Candidate, candidates: list[Candidate], src: PreparedCloud, cf
     lower agreement when more hypotheses agree was tried: faster on noisy pairs, but the verdict then
     misses the rivals of the skipped hypotheses and becomes over-confident.)"""
     o = cfg.outer
-    threshold = min(o.settle_alone, o.settle_full) if best.overlap >= 1.0 else o.settle_alone
-    if best.agreement.score >= threshold:
+    if best.agreement.score >= settle_threshold(best.overlap, o.settle_alone, o.settle_full):
         return True
     if o.settle_support <= 0 or best.agreement.score < o.settle_agreement:
         return False
