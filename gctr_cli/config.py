@@ -180,12 +180,16 @@ class EngineConfig(_Strict):
     overlap_candidates: tuple[float, ...] = Field((0.25, 0.5, 0.75, 1.0), description="ratios tried by 'auto'")
     part_regions: tuple[float, ...] = Field(
         (0.45,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
+    source_halves_below: float = Field(
+        0.35, ge=0, le=1,
+        description="below this confidence of the first answer, search again from each half of the source (split "
+        "at the median along its principal axes): finds an overlap that is a slab at one end of the source; 0 = never")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(
-        0.35, ge=0, le=1,
+        0.30, ge=0, le=1,
         description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")

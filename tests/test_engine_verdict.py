@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from data_scripts.make_benchmark import make_part_pair, make_sfm_pair
+from data_scripts.make_benchmark import make_lowoverlap_pair, make_part_pair, make_sfm_pair
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine import register, score_transform
+from gctr_cli.engine.halves import source_halves
 from gctr_cli.engine.verdict import (
     Agreement,
     SharedData,
@@ -255,6 +256,36 @@ def test_photogrammetry_like_target():
     pair = make_sfm_pair(_model("dragon"), np.random.default_rng([7, 2]), n_source=8000)
     res = register(pair.source, pair.target, cfg_default(), seed=0)
     _assert_correct(res, pair.T_gt, pair.source, pair.target)
+
+
+@pytest.mark.slow  # ~6 s: the first search and six more, one from each half of the source
+def test_low_overlap_slab_is_found_from_a_half_of_the_source():
+    """Two slab crops of the bunny sharing 25-50% of their points (1/4 density, 0.5% noise, outliers,
+    random similarity): the overlap is a slab at one end of each, into which few of the first search's
+    triangles fit. Its best answer is a half-turn, refused; searched again from each half of the source
+    (``source_halves_below``), the engine finds the truth and accepts it."""
+    pair = make_lowoverlap_pair(_model("bunny"), np.random.default_rng([7, 7]), n_source=8000)
+    first = register(pair.source, pair.target, EngineConfig(source_halves_below=0.0), seed=0)
+    assert first.status == "failed"
+    assert _errors(first.transform, pair.T_gt, pair.source, pair.target).rot_err_deg > 90
+    res = register(pair.source, pair.target, cfg_default(), seed=0)
+    _assert_correct(res, pair.T_gt, pair.source, pair.target)
+
+
+def test_source_halves_split_at_the_median_along_each_principal_axis():
+    rng = np.random.default_rng(0)
+    axes = Rotation.random(random_state=1).as_matrix()
+    points = (rng.normal(size=(1001, 3)) * [3.0, 2.0, 1.0]) @ axes.T + [5.0, -2.0, 1.0]
+    masks = source_halves(points)
+    assert len(masks) == 6
+    for a in range(3):
+        lower, upper = masks[2 * a], masks[2 * a + 1]
+        assert lower.sum() == upper.sum() == 501  # the median point is in both halves
+        assert np.all(lower | upper)
+        # the split direction is the a-th principal axis (ascending variance): the halves' centres lie
+        # on either side along it
+        gap = points[upper].mean(axis=0) - points[lower].mean(axis=0)
+        assert abs(gap @ axes[:, 2 - a]) / np.linalg.norm(gap) > 0.95
 
 
 def test_score_of_the_truth_beats_a_wrong_pose():

@@ -21,6 +21,9 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    (SVD; Umeyama or edge-ratio scale) — until the salient points stop moving. The search stops
    early once two hypotheses settle on the same well-supported transform, or one hypothesis alone
    explains most of both clouds;
+4b. when the verdict (5) on those candidates is unsure (confidence below ``source_halves_below``), the
+   search again from each half of the source (:mod:`~gctr_cli.engine.halves`: an overlap that is a slab
+   at one end of the source), and the verdict decides among all candidates;
 5. verdict (:mod:`~gctr_cli.engine.decide`, measures in :mod:`~gctr_cli.engine.verdict`): the best
    few *distinct* transforms the search saw are refined (scaled point-to-plane ICP on the working
    clouds, or finer ones with ``refine.voxel_ratio``) and compared by surface agreement (proximity
@@ -43,6 +46,7 @@ import numpy as np
 
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine.decide import decide, refusal_message
+from gctr_cli.engine.halves import half_candidates
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, prepare_cloud
 from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, normalise, validate_cloud
 from gctr_cli.engine.refine import evaluate_fit
@@ -50,6 +54,13 @@ from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.search import Candidate, search, search_plan
 from gctr_cli.engine.verdict import displacement, surface_agreement
 from gctr_cli.geometry import split
+
+
+def _add_verdict_time(timer: StageTimer, start: float, refine_before: float) -> None:
+    """Book the verdict stage's time since ``start`` (finer clouds, rival scoring, the final choice), less
+    the ICP it ran (booked as "refine")."""
+    timer.timings["verdict"] = timer.timings.get("verdict", 0.0) + (time.perf_counter() - start) - (
+        timer.timings.get("refine", 0.0) - refine_before)
 
 
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
@@ -123,21 +134,34 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         return _failed(str(err), seed, start, timer.timings)
     ns, nt, src, tgt, bounds_n, candidates = (run.norm_source, run.norm_target, run.source, run.target,
                                               run.bounds_n, run.candidates)
-    if not candidates:
+    src_ref = tgt_ref = None
+    verdict = None
+    if candidates:
+        t = time.perf_counter()
+        refine_before = timer.timings.get("refine", 0.0)
+        src_ref = RefinementCloud.of(src, ns.points, cfg, run.rng_refine)
+        tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, run.rng_refine)
+        T_n, verdict = decide(candidates, src, src_ref, tgt_ref, cfg, bounds_n, timer)
+        _add_verdict_time(timer, t, refine_before)
+    if verdict is None or verdict.confidence < cfg.source_halves_below:
+        # The first search left the answer in doubt: search again from each half of the source
+        # (an overlap that is a slab at one end of it), and decide among all candidates.
+        extra = half_candidates(ns.points, src, tgt, bounds_n, cfg, seed, timer)
+        if extra:
+            candidates = candidates + extra
+            t = time.perf_counter()
+            refine_before = timer.timings.get("refine", 0.0)
+            if src_ref is None or tgt_ref is None:
+                src_ref = RefinementCloud.of(src, ns.points, cfg, run.rng_refine)
+                tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, run.rng_refine)
+            T_n, verdict = decide(candidates, src, src_ref, tgt_ref, cfg, bounds_n, timer)
+            _add_verdict_time(timer, t, refine_before)
+    if verdict is None:
         return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
                        timer.timings)
-
-    t = time.perf_counter()
-    refine_before = timer.timings.get("refine", 0.0)
-    src_ref = RefinementCloud.of(src, ns.points, cfg, run.rng_refine)
-    tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, run.rng_refine)
-    T_n, verdict = decide(candidates, src, src_ref, tgt_ref, cfg, bounds_n, timer)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.
     best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
-    # the verdict stage: finer clouds, rival scoring and the final choice (ICP itself is "refine")
-    timer.timings["verdict"] = timer.timings.get("verdict", 0.0) + (time.perf_counter() - t) - (
-        timer.timings.get("refine", 0.0) - refine_before)
     T = denormalise(T_n, ns, nt)
     scale, rotation, translation = split(T)
     lo, hi = cfg.scale_bounds
