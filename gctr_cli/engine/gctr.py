@@ -52,15 +52,8 @@ from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, de
 from gctr_cli.engine.refine import evaluate_fit
 from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.search import Candidate, search, search_plan
-from gctr_cli.engine.verdict import displacement, surface_agreement
+from gctr_cli.engine.verdict import Verdict, displacement, surface_agreement
 from gctr_cli.geometry import split
-
-
-def _add_verdict_time(timer: StageTimer, start: float, refine_before: float) -> None:
-    """Book the verdict stage's time since ``start`` (finer clouds, rival scoring, the final choice), less
-    the ICP it ran (booked as "refine")."""
-    timer.timings["verdict"] = timer.timings.get("verdict", 0.0) + (time.perf_counter() - start) - (
-        timer.timings.get("refine", 0.0) - refine_before)
 
 
 def _failed(message: str, seed: int, start: float, timings: dict[str, float],
@@ -134,28 +127,32 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         return _failed(str(err), seed, start, timer.timings)
     ns, nt, src, tgt, bounds_n, candidates = (run.norm_source, run.norm_target, run.source, run.target,
                                               run.bounds_n, run.candidates)
-    src_ref = tgt_ref = None
-    verdict = None
-    if candidates:
+    refinement: tuple[RefinementCloud, RefinementCloud] | None = None
+
+    def judge(pool: list[Candidate]) -> tuple[np.ndarray, Verdict]:
+        """The verdict on ``pool`` (refinement clouds built once, on first use), its time booked."""
+        nonlocal refinement
         t = time.perf_counter()
         refine_before = timer.timings.get("refine", 0.0)
-        src_ref = RefinementCloud.of(src, ns.points, cfg, run.rng_refine)
-        tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, run.rng_refine)
-        T_n, verdict = decide(candidates, src, src_ref, tgt_ref, cfg, bounds_n, timer)
-        _add_verdict_time(timer, t, refine_before)
+        if refinement is None:
+            refinement = (RefinementCloud.of(src, ns.points, cfg, run.rng_refine),
+                          RefinementCloud.of(tgt, nt.points, cfg, run.rng_refine))
+        answer = decide(pool, src, *refinement, cfg, bounds_n, timer)
+        # the verdict stage: finer clouds, rival scoring and the final choice (ICP itself is "refine")
+        timer.timings["verdict"] = timer.timings.get("verdict", 0.0) + (time.perf_counter() - t) - (
+            timer.timings.get("refine", 0.0) - refine_before)
+        return answer
+
+    verdict: Verdict | None = None
+    if candidates:
+        T_n, verdict = judge(candidates)
     if verdict is None or verdict.confidence < cfg.source_halves_below:
         # The first search left the answer in doubt: search again from each half of the source
         # (an overlap that is a slab at one end of it), and decide among all candidates.
         extra = half_candidates(ns.points, src, tgt, bounds_n, cfg, seed, timer)
         if extra:
             candidates = candidates + extra
-            t = time.perf_counter()
-            refine_before = timer.timings.get("refine", 0.0)
-            if src_ref is None or tgt_ref is None:
-                src_ref = RefinementCloud.of(src, ns.points, cfg, run.rng_refine)
-                tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, run.rng_refine)
-            T_n, verdict = decide(candidates, src, src_ref, tgt_ref, cfg, bounds_n, timer)
-            _add_verdict_time(timer, t, refine_before)
+            T_n, verdict = judge(candidates)
     if verdict is None:
         return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
                        timer.timings)

@@ -12,10 +12,12 @@ one of the six halves gave the right transform on 17 (``docs/how-it-works.md``).
 :func:`half_candidates` runs the overlap search (the whole plan) on each half and returns the candidates
 in the coordinates of the whole source, their surface agreement re-measured on the whole clouds, so that
 the verdict compares them with the first search's on equal terms. It costs about six searches, so the
-engine runs it only when the first verdict would refuse the pair (``halves``).
+engine runs it only when the first verdict's confidence is below ``source_halves_below``.
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
@@ -27,8 +29,6 @@ from gctr_cli.engine.verdict import Agreement, surface_agreement
 
 #: spawn keys of the halves' generators (the first search spawns keys 0, 1, 2, ... of the pair's seed)
 HALF_SPAWN_KEY = 1000
-#: a half needs at least this share of the source's points to be searched (guards tiny, skewed clouds)
-MIN_HALF_SHARE = 0.2
 
 
 def source_halves(points: np.ndarray) -> list[np.ndarray]:
@@ -62,8 +62,6 @@ def half_candidates(source_n: np.ndarray, src: PreparedCloud, tgt: PreparedCloud
     plan = search_plan(cfg)
     out: list[Candidate] = []
     for k, mask in enumerate(source_halves(source_n)):
-        if mask.mean() < MIN_HALF_SHARE:
-            continue
         rng_src, *rng_plan = [np.random.default_rng(s) for s in
                               np.random.SeedSequence(seed, spawn_key=(HALF_SPAWN_KEY + k,)).spawn(1 + len(plan))]
         half = normalise(source_n[mask])
@@ -74,8 +72,10 @@ def half_candidates(source_n: np.ndarray, src: PreparedCloud, tgt: PreparedCloud
         to_whole = np.linalg.inv(half.to_original())
         bounds_h = (bounds_n[0] * half.size, bounds_n[1] * half.size)
         for c in search(prepared, tgt, plan, rng_plan, bounds_h, cfg, timer):
+            t = time.perf_counter()
             T, agreement = _rescored(c.transform, to_whole, src, tgt, cfg)
             alternatives = tuple(_rescored(T_alt, to_whole, src, tgt, cfg) for T_alt, _ in c.alternatives)
+            timer.add("scoring", t)
             out.append(Candidate(transform=T, n_inliers=c.n_inliers, iterations=c.iterations, agreement=agreement,
                                  overlap=c.overlap, alternatives=alternatives))
     return out
