@@ -126,8 +126,9 @@ class RefineConfig(_Strict):
     max_matches: int = Field(
         2000, ge=0, description="point_to_plane: points of each cloud moved and matched per iteration (every k-th); "
                                 "0 = all")
-    start_ratio: float = Field(0.08, gt=0, description="initial trimming distance / robust diameter")
-    end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter")
+    start_ratio: float = Field(
+        0.08, gt=0, description="initial trimming distance / robust diameter of the smaller cloud")
+    end_ratio: float = Field(0.02, gt=0, description="final trimming distance / robust diameter of the smaller cloud")
     voxel_ratio: float = Field(
         0.0, ge=0, lt=0.5,
         description="voxel size of the refinement clouds / robust diameter; 0 = refine on the working clouds")
@@ -147,7 +148,7 @@ class VerdictConfig(_Strict):
         3, ge=1, description="distinct transforms refined and compared at the tight tolerances")
     rival_pool: int = Field(30, ge=0, description="best unrefined transforms of the search also checked as rivals")
     tight_distance_ratio: float = Field(
-        0.02, gt=0, lt=1, description="final comparison: distance / robust target diameter")
+        0.02, gt=0, lt=1, description="final comparison: distance / robust diameter of the smaller cloud")
     tight_noise_factor: float = Field(
         1.0, ge=0, le=10,
         description="... at least this times the clouds' combined surface roughness, the normal angle "
@@ -189,7 +190,7 @@ class EngineConfig(_Strict):
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(
-        0.30, ge=0, le=1,
+        0.20, ge=0, le=1,
         description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")

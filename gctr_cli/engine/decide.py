@@ -40,8 +40,16 @@ def tight_tolerances(src_ref: RefinementCloud, tgt_ref: RefinementCloud, scale: 
     """
     v = cfg.verdict
     noise = float(np.hypot(scale * src_ref.roughness, tgt_ref.roughness))
-    distance = max(v.tight_distance_ratio, v.tight_noise_factor * noise)
-    return distance, min(90.0, v.tight_normal_angle_deg * distance / v.tight_distance_ratio)
+    base = v.tight_distance_ratio * smaller_cloud(scale)
+    distance = max(base, v.tight_noise_factor * noise)
+    return distance, min(90.0, v.tight_normal_angle_deg * distance / base)
+
+
+def smaller_cloud(scale: float) -> float:
+    """Size of the smaller of the two clouds in normalised target units (each cloud is normalised to
+    size 1; the source's size there is the transform's ``scale``): the length that the verdict's and
+    the refinement's relative tolerances refer to."""
+    return min(1.0, scale)
 
 
 def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
@@ -62,15 +70,17 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
     if not r.enabled:
         return T_n, before
     t = time.perf_counter()
+    size = smaller_cloud(float(np.cbrt(np.linalg.det(T_n[:3, :3]))))
+    start, end = r.start_ratio * size, r.end_ratio * size
     if r.method == "point_to_plane":
         T_r, _ = scaled_point_to_plane_icp(src_ref.points, tgt_ref.points, tgt_ref.normals, T_n, r.iterations,
-                                           r.start_ratio, r.end_ratio, bounds_n, tgt_ref.tree,
+                                           start, end, bounds_n, tgt_ref.tree,
                                            src_normals=src_ref.normals, max_normal_angle_deg=v.max_normal_angle_deg,
                                            src_tree=src_ref.tree, symmetric=r.symmetric,
                                            max_matches=r.max_matches)
     else:
-        T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, r.start_ratio, r.end_ratio,
-                                    bounds_n, tgt_ref.tree)
+        T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, start, end, bounds_n,
+                                    tgt_ref.tree)
     timer.add("refine", t)
     after = _tight_agreement(T_r, src_ref, tgt_ref, tolerances)
     return (T_r, after) if after.score >= before.score else (T_n, before)
