@@ -1017,6 +1017,8 @@ def test_tight_tolerances_widen_only_on_noisy_clouds():
                                                                        v.tight_normal_angle_deg), rel=1e-12)
     assert tight_tolerances(clean, clean, 2.0, cfg) == pytest.approx((v.tight_distance_ratio,
                                                                        v.tight_normal_angle_deg), rel=1e-12)
+    for not_a_scale in (0.0, -0.5, float("nan")):  # no similarity: the target's size, as before
+        assert tight_tolerances(clean, clean, not_a_scale, cfg)[0] == pytest.approx(v.tight_distance_ratio)
     assert tight_tolerances(SimpleNamespace(roughness=0.5), noisy, 1.0, cfg)[1] == 90.0
     fixed = EngineConfig.model_validate({"verdict": {"tight_noise_factor": 0.0}})
     assert tight_tolerances(noisy, noisy, 1.0, fixed) == pytest.approx(

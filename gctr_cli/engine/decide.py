@@ -48,8 +48,9 @@ def tight_tolerances(src_ref: RefinementCloud, tgt_ref: RefinementCloud, scale: 
 def smaller_cloud(scale: float) -> float:
     """Size of the smaller of the two clouds in normalised target units (each cloud is normalised to
     size 1; the source's size there is the transform's ``scale``): the length that the verdict's and
-    the refinement's relative tolerances refer to."""
-    return min(1.0, scale)
+    the refinement's relative tolerances refer to. A scale that is not a positive number (no
+    similarity) falls back to the target's size."""
+    return min(1.0, scale) if np.isfinite(scale) and scale > 0 else 1.0
 
 
 def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
