@@ -45,6 +45,11 @@ def tight_tolerances(src_ref: RefinementCloud, tgt_ref: RefinementCloud, scale: 
     return distance, min(90.0, v.tight_normal_angle_deg * distance / base)
 
 
+def similarity_scale(T: np.ndarray) -> float:
+    """Scale of the similarity ``T`` (cube root of its 3x3 block's determinant)."""
+    return float(np.cbrt(np.linalg.det(T[:3, :3])))
+
+
 def smaller_cloud(scale: float) -> float:
     """Size of the smaller of the two clouds in normalised target units (each cloud is normalised to
     size 1; the source's size there is the transform's ``scale``): the length that the verdict's and
@@ -71,7 +76,7 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
     if not r.enabled:
         return T_n, before
     t = time.perf_counter()
-    size = smaller_cloud(float(np.cbrt(np.linalg.det(T_n[:3, :3]))))
+    size = smaller_cloud(similarity_scale(T_n))
     start, end = r.start_ratio * size, r.end_ratio * size
     if r.method == "point_to_plane":
         T_r, _ = scaled_point_to_plane_icp(src_ref.points, tgt_ref.points, tgt_ref.normals, T_n, r.iterations,
@@ -111,7 +116,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             finalists.append(T)
             if len(finalists) == v.refined_finalists:
                 break
-    tolerances = tight_tolerances(src_ref, tgt_ref, float(np.cbrt(np.linalg.det(pool[0][0][:3, :3]))), cfg)
+    tolerances = tight_tolerances(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
     refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, tolerances) for T in finalists),
                      key=lambda x: -x[1].score)
     T_answer, agreement = refined[0]
