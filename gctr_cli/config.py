@@ -163,6 +163,12 @@ class VerdictConfig(_Strict):
     normal_balance: float = Field(
         0.5, ge=0, le=1,
         description="agreement weights each point by (points sharing its normal direction)^-this; 0 = all equal")
+    conflict_weight: float = Field(
+        0.25, ge=0, le=2,
+        description="final comparison: each point that lands near the other cloud but not on its surface costs "
+                    "this much of an agreeing point; 0 = off")
+    conflict_ratio: float = Field(
+        0.1, gt=0, lt=1, description="... 'near': distance / robust diameter of the smaller cloud")
 
 
 class EngineConfig(_Strict):
@@ -190,7 +196,7 @@ class EngineConfig(_Strict):
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(
-        0.20, ge=0, le=1,
+        0.40, ge=0, le=1,
         description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")

@@ -149,6 +149,30 @@ def test_engine_surfaces_are_weighted_by_default():
     assert prepare_cloud(points, off, np.random.default_rng(0), StageTimer({})).surface.sample_weights is None
 
 
+def test_conflict_counts_near_misses_against_the_agreement():
+    """``conflict_weight``: a point that lands near the other cloud (within ``near``) but off its surface
+    is evidence against the transform, not merely no evidence for it. A pose that puts the source
+    just beside the target (a flipped slab, a half-turned low-overlap crop) scores below one that puts
+    it nowhere near, which scores 0; the right pose has no near misses and keeps its full agreement."""
+    rng = np.random.default_rng(5)
+    pts, nrm = _sphere(4000, rng)
+    src, tgt = _surface(pts, nrm), _surface(pts, nrm)
+    beside = np.diag([1.06, 1.06, 1.06, 1.0])  # every point 0.06 off the surface: near (0.1), not on (0.02)
+    away = np.eye(4)
+    away[:3, 3] = [5.0, 0.0, 0.0]
+    truth = surface_agreement(np.eye(4), src, tgt, 0.02, 30.0, near=0.1, conflict_weight=0.25)
+    near_miss = surface_agreement(beside, src, tgt, 0.02, 30.0, near=0.1, conflict_weight=0.25)
+    nowhere = surface_agreement(away, src, tgt, 0.02, 30.0, near=0.1, conflict_weight=0.25)
+    assert truth.conflict_source == 0.0 and truth.conflict_target == 0.0 and truth.score == pytest.approx(1.0)
+    assert near_miss.source == 0.0 and near_miss.target == 0.0
+    assert near_miss.conflict_source == pytest.approx(1.0) and near_miss.conflict_target == pytest.approx(1.0)
+    assert near_miss.score == pytest.approx(-0.25)
+    assert nowhere.score == 0.0 and nowhere.conflict_source == 0.0
+    # weight 0 (or no ``near``) is the plain agreement: conflicts are not even counted
+    plain = surface_agreement(beside, src, tgt, 0.02, 30.0, near=0.1, conflict_weight=0.0)
+    assert plain.conflict_source == 0.0 and plain.score == 0.0
+
+
 def test_confidence_is_the_lead_over_the_rival():
     assert confidence(0.6, 0.0, 0.25) == 1.0
     assert confidence(0.5, 0.45, 0.25) == pytest.approx(0.2)
@@ -342,7 +366,7 @@ def test_threshold_is_a_config_key():
     assert err.rot_err_deg < 2.0  # refused, but the best transform found is still reported
 
 
-def test_refusal_message_states_the_lead_in_percentage_points():
+def test_refusal_message_states_the_share_explained_and_the_lead():
     from gctr_cli.engine.decide import refusal_message
     from gctr_cli.engine.verdict import Verdict
 
@@ -353,7 +377,12 @@ def test_refusal_message_states_the_lead_in_percentage_points():
                     agreement=Agreement(score, score), support=1.0)
         return refusal_message(v, cfg)
 
-    assert "explains 13% of the two surfaces, only 1 percentage point more than" in message(0.13, 0.12)
-    assert "only 4 percentage points more than" in message(0.10, 0.06)
+    assert "explains 13% of the two surfaces and scores only 1 point more than" in message(0.13, 0.12)
+    assert "scores only 4 points more than" in message(0.10, 0.06)
     assert message(0.10, 0.11).startswith("low confidence 0.00") and "no more than a distinct" in message(0.10, 0.11)
+    # the share explained is the plain agreement; the score also counts the points landing beside
+    v = Verdict(confidence=0.0, score=-0.02, rival_score=-0.01, support=1.0,
+                agreement=Agreement(0.2, 0.1, 0.6, 0.4, 0.25))
+    assert "explains 15% of the two surfaces and scores no more than" in refusal_message(v, cfg)
+    assert "(score -0.02 vs -0.01)" in refusal_message(v, cfg)
     assert message(0.50, 0.48).startswith("ambiguous: two distinct alignments")

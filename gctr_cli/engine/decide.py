@@ -59,7 +59,7 @@ def smaller_cloud(scale: float) -> float:
 
 
 def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
-                     tolerances: tuple[float, float]) -> Agreement:
+                     tolerances: tuple[float, ...]) -> Agreement:
     """Surface agreement at the verdict's tight ``tolerances`` (:func:`tight_tolerances`), on the
     refinement clouds."""
     return surface_agreement(T, src_ref.surface, tgt_ref.surface, *tolerances)
@@ -67,7 +67,7 @@ def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: Refinemen
 
 def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
             bounds_n: tuple[float, float], timer: StageTimer,
-            tolerances: tuple[float, float]) -> tuple[np.ndarray, Agreement]:
+            tolerances: tuple[float, ...]) -> tuple[np.ndarray, Agreement]:
     """Scaled ICP polish of a coarse transform on the refinement clouds, kept only when its tight surface
     agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
     verdict's objective exposes it). Returns the transform and its tight agreement."""
@@ -116,7 +116,9 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             finalists.append(T)
             if len(finalists) == v.refined_finalists:
                 break
-    tolerances = tight_tolerances(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
+    scale = similarity_scale(pool[0][0])
+    tolerances = (*tight_tolerances(src_ref, tgt_ref, scale, cfg), v.conflict_ratio * smaller_cloud(scale),
+                  v.conflict_weight)
     refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, tolerances) for T in finalists),
                      key=lambda x: -x[1].score)
     T_answer, agreement = refined[0]
@@ -141,15 +143,18 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
 
 def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     """Why an answer below the confidence threshold is refused, in words: *ambiguous* when a distinct
-    rival explains nearly as much of a well-explained pair (agreement ≥ ``AMBIGUITY_MIN_SCORE``), else *low confidence*
-    with how much of the data the best alignment explains."""
-    scores = f"agreement {verdict.score:.2f} vs {verdict.rival_score:.2f}"
+    rival scores nearly as much on a well-explained pair (the answer puts at least ``AMBIGUITY_MIN_SCORE``
+    of the two surfaces on each other), else *low confidence* with how much of the data the best
+    alignment explains and by how many points of score it leads."""
+    scores = f"score {verdict.score:.2f} vs {verdict.rival_score:.2f}"
+    explained = 0.5 * (verdict.agreement.source + verdict.agreement.target)
     lead = verdict.score - verdict.rival_score
-    if verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score and verdict.score >= AMBIGUITY_MIN_SCORE:
+    if (verdict.score > 0 and verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score
+            and explained >= AMBIGUITY_MIN_SCORE):
         return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
                 f"confidence {verdict.confidence:.2f}, threshold {cfg.min_confidence:.2f})")
     points = round(100 * lead)
-    margin = ("no more than" if points <= 0 else
-              f"only {points} percentage point{'' if points == 1 else 's'} more than")
+    margin = ("scores no more than" if points <= 0 else
+              f"scores only {points} point{'' if points == 1 else 's'} more than")
     return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment "
-            f"explains {100 * verdict.score:.0f}% of the two surfaces, {margin} a distinct alternative ({scores})")
+            f"explains {100 * explained:.0f}% of the two surfaces and {margin} a distinct alternative ({scores})")

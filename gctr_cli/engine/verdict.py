@@ -12,6 +12,11 @@ Two measures, both on the working clouds in normalised coordinates:
   target share. Each sample point counts with the weight ``count ** -verdict.normal_balance`` of its
   normal direction (:func:`normal_space_weights`), so that a dominant plane — the ground of a LiDAR
   sweep, the walls and floor of a room — cannot explain most of a scene on its own.
+  In the final comparison (``decide``) the score also counts **conflicts**: a point that lands *near*
+  the other cloud (within ``verdict.conflict_ratio`` of the smaller cloud) but not on its surface is
+  evidence against the transform, and costs ``verdict.conflict_weight`` of an agreeing point. A
+  half-turned slab or a low-overlap crop laid beside the right place puts a third to a half of the
+  data beside the other surface; the right pose leaves only noise and the overlap's border there.
 * **confidence** in [0, 1]: how far the answer's agreement leads the best *distinct* alternative
   (a second transform that explains the data almost as well means the data do not single out one
   answer). See :func:`confidence`.
@@ -89,11 +94,16 @@ class Agreement:
 
     source: float
     target: float
+    conflict_source: float = 0.0  # share of the source sample that lands near the target but not on it
+    conflict_target: float = 0.0  # the same of the target sample mapped back onto the source
+    conflict_weight: float = 0.0  # how much a conflicting point costs against an agreeing one
 
     @property
     def score(self) -> float:
-        """Mean of the two shares: the engine's objective for ranking candidates."""
-        return 0.5 * (self.source + self.target)
+        """Mean of the two shares, less ``conflict_weight`` times the mean of the two conflict shares:
+        the engine's objective for ranking candidates."""
+        return 0.5 * (self.source + self.target) - 0.5 * self.conflict_weight * (self.conflict_source
+                                                                                 + self.conflict_target)
 
 
 def surface_matches(points: np.ndarray, normals: np.ndarray | None, other_normals: np.ndarray, tree: cKDTree,
@@ -111,13 +121,23 @@ def surface_matches(points: np.ndarray, normals: np.ndarray | None, other_normal
 
 
 def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surface, distance: float,
-                      min_cos: float, weights: np.ndarray | None = None) -> float:
+                      min_cos: float, weights: np.ndarray | None = None, near: float = 0.0) -> tuple[float, float]:
+    """(weighted share of ``moved`` on the ``other`` surface — nearest partner within ``distance`` with an
+    agreeing normal, as :func:`surface_matches` —, weighted share within ``near`` of it but not on it).
+    One neighbour query serves both (the nearest partner is the same)."""
     if len(moved) == 0:
-        return 0.0
-    i, _ = surface_matches(moved, moved_normals, other.normals, other.tree, distance, min_cos)
-    if weights is None:
-        return len(i) / len(moved)
-    return float(weights[i].sum() / weights.sum())
+        return 0.0, 0.0
+    w = np.ones(len(moved)) if weights is None else weights
+    d, j = other.tree.query(moved, distance_upper_bound=max(distance, near))
+    close = np.isfinite(d)
+    on = close & (d <= distance)
+    if min_cos > 0:
+        i = np.flatnonzero(on)
+        cos = np.abs(np.einsum("ij,ij->i", moved_normals[i], other.normals[j[i]]))
+        on[i[cos < min_cos]] = False
+    total = w.sum()
+    conflict = float(w[close & ~on].sum() / total) if near > distance else 0.0
+    return float(w[on].sum() / total), conflict
 
 
 def _scale_rotation(T: np.ndarray) -> tuple[float, np.ndarray] | None:
@@ -136,7 +156,7 @@ def _pulled_back(T: np.ndarray, s: float, R: np.ndarray, points: np.ndarray) -> 
 
 
 def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float,
-                      max_angle_deg: float = 30.0) -> Agreement:
+                      max_angle_deg: float = 30.0, near: float = 0.0, conflict_weight: float = 0.0) -> Agreement:
     """Surface agreement of the similarity ``T`` (normalised source -> normalised target).
 
     ``distance`` is in target units; the backward test uses ``distance / s`` in source units.
@@ -146,11 +166,12 @@ def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float
         return Agreement(0.0, 0.0)
     s, R = scale_rotation
     min_cos = float(np.cos(np.radians(max_angle_deg)))
-    fwd = _share_on_surface(apply(T, src.sample), src.sample_normals @ R.T, tgt, distance, min_cos,
-                            src.sample_weights)
-    back = _share_on_surface(_pulled_back(T, s, R, tgt.sample), tgt.sample_normals @ R, src, distance / s, min_cos,
-                             tgt.sample_weights)
-    return Agreement(fwd, back)
+    near = near if conflict_weight > 0 else 0.0
+    fwd, cf = _share_on_surface(apply(T, src.sample), src.sample_normals @ R.T, tgt, distance, min_cos,
+                                src.sample_weights, near)
+    back, cb = _share_on_surface(_pulled_back(T, s, R, tgt.sample), tgt.sample_normals @ R, src, distance / s,
+                                 min_cos, tgt.sample_weights, near / s)
+    return Agreement(fwd, back, cf, cb, conflict_weight)
 
 
 def displacement(T1: np.ndarray, T2: np.ndarray, points: np.ndarray) -> float:
