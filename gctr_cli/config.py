@@ -159,7 +159,7 @@ class VerdictConfig(_Strict):
         0.25, gt=0, le=1, description="lead over the best distinct rival at which confidence reaches 1")
     ambiguity_ratio: float = Field(
         0.8, gt=0, le=1,
-        description="a refused answer is called ambiguous when its rival reaches this share of its agreement")
+        description="a refused answer is called ambiguous when its rival reaches this share of its score")
     normal_balance: float = Field(
         0.5, ge=0, le=1,
         description="agreement weights each point by (points sharing its normal direction)^-this; 0 = all equal")
@@ -190,13 +190,14 @@ class EngineConfig(_Strict):
     source_halves_below: float = Field(
         0.35, ge=0, le=1,
         description="below this confidence of the first answer, search again from each half of the source (split "
-        "at the median along its principal axes): finds an overlap that is a slab at one end of the source; 0 = never")
+        "at the median along its principal axes): finds an overlap that is a slab at one end of the source; "
+        "it also runs below min_confidence, so an answer is not refused without it; 0 = never")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(
-        0.40, ge=0, le=1,
+        0.15, ge=0, le=1,
         description="below this confidence the pair is reported failed (see bench/ENGINE.md for the trade-off)")
 
     @field_validator("overlap")

@@ -171,6 +171,39 @@ def test_conflict_counts_near_misses_against_the_agreement():
     # weight 0 (or no ``near``) is the plain agreement: conflicts are not even counted
     plain = surface_agreement(beside, src, tgt, 0.02, 30.0, near=0.1, conflict_weight=0.0)
     assert plain.conflict_source == 0.0 and plain.score == 0.0
+    # the backward test works in source units (near / s): a shrinking map (s = 0.905, the points 0.095
+    # inside the target sphere) is near in target units, and the target pulled back lies 0.105 / s
+    # outside the source sphere in source units — still near once near is divided by s
+    shrink = surface_agreement(np.diag([0.905, 0.905, 0.905, 1.0]), src, tgt, 0.02, 30.0, near=0.1,
+                               conflict_weight=0.25)
+    assert shrink.conflict_source == pytest.approx(1.0) and shrink.conflict_target == pytest.approx(1.0)
+    # right place, wrong normals: near the surface but not on it, so a conflict
+    turned = np.cross(nrm, np.array([0.0, 0.0, 1.0]))
+    turned /= np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), 1e-12)
+    far = np.abs(turned[:, 2]) < 0.5  # avoid the poles, where the cross product degenerates
+    crossed = surface_agreement(np.eye(4), _surface(pts[far], turned[far]), _surface(pts[far], nrm[far]), 0.02, 30.0,
+                                near=0.1, conflict_weight=0.25)
+    assert crossed.source < 0.05 and crossed.conflict_source > 0.95
+    # conflicts are weighted by normal direction as the agreement is: a plane (90% of the points, one
+    # direction) laid beside itself costs less when the rare directions are on the surface
+    from scipy.spatial import cKDTree
+
+    plane = np.column_stack([rng.uniform(-1, 1, (3600, 2)), np.zeros(3600)])
+    post = np.column_stack([np.full(400, 0.5), np.full(400, 0.5), rng.uniform(0.0, 1.0, 400)])
+    post[:, 0] += rng.normal(scale=0.05, size=400)
+    scene = np.vstack([plane, post])
+    up = np.tile([0.0, 0.0, 1.0], (3600, 1))
+    side = np.column_stack([np.ones(400), np.zeros(400), np.zeros(400)])
+    normals = np.vstack([up, side])
+    weighted = Surface.build(scene, normals, cKDTree(scene), 1000, normal_balance=0.5)
+    unweighted = Surface.build(scene, normals, cKDTree(scene), 1000, normal_balance=0.0)
+    lift = np.eye(4)
+    lift[2, 3] = 0.05  # the plane 0.05 above itself: beside; the vertical post still on itself
+    w = surface_agreement(lift, weighted, weighted, 0.02, 30.0, near=0.1, conflict_weight=0.25)
+    u = surface_agreement(lift, unweighted, unweighted, 0.02, 30.0, near=0.1, conflict_weight=0.25)
+    assert u.conflict_source == pytest.approx(0.9, abs=0.03)
+    assert w.conflict_source < u.conflict_source - 0.1
+    assert w.source + w.conflict_source == pytest.approx(1.0) and u.source + u.conflict_source == pytest.approx(1.0)
 
 
 def test_confidence_is_the_lead_over_the_rival():
@@ -178,6 +211,11 @@ def test_confidence_is_the_lead_over_the_rival():
     assert confidence(0.5, 0.45, 0.25) == pytest.approx(0.2)
     assert confidence(0.3, 0.3, 0.25) == 0.0
     assert confidence(0.2, 0.4, 0.25) == 0.0  # a better rival never gives a negative confidence
+    # scores below 0 (more of the clouds beside each other than on each other) are no evidence: the
+    # lead is over max(rival, 0), the score of putting the source nowhere near the target
+    assert confidence(0.0, -0.10, 0.25) == 0.0
+    assert confidence(-0.05, -0.30, 0.25) == 0.0
+    assert confidence(0.05, -0.30, 0.25) == pytest.approx(0.2)
     assert Agreement(0.2, 0.6).score == pytest.approx(0.4)
 
 
@@ -381,8 +419,55 @@ def test_refusal_message_states_the_share_explained_and_the_lead():
     assert "scores only 4 points more than" in message(0.10, 0.06)
     assert message(0.10, 0.11).startswith("low confidence 0.00") and "no more than a distinct" in message(0.10, 0.11)
     # the share explained is the plain agreement; the score also counts the points landing beside
-    v = Verdict(confidence=0.0, score=-0.02, rival_score=-0.01, support=1.0,
-                agreement=Agreement(0.2, 0.1, 0.6, 0.4, 0.25))
-    assert "explains 15% of the two surfaces and scores no more than" in refusal_message(v, cfg)
-    assert "(score -0.02 vs -0.01)" in refusal_message(v, cfg)
+    a = Agreement(0.3, 0.2, 0.7, 0.7, 0.25)  # score 0.25 - 0.175 = 0.075
+    v = Verdict(confidence=confidence(a.score, 0.07, 0.25), score=a.score, rival_score=0.07, support=1.0, agreement=a)
+    # ambiguous: the rival reaches 0.8 x 0.075 on a pair 25% explained, though the score is only 0.075
+    assert refusal_message(v, cfg).startswith("ambiguous") and "(score 0.08 vs 0.07;" in refusal_message(v, cfg)
+    # a score of 0 or less: the answer lays as much of the clouds beside each other as on each other
+    a = Agreement(0.2, 0.1, 0.8, 0.6, 0.25)  # score 0.15 - 0.175 = -0.025
+    v = Verdict(confidence=confidence(a.score, -0.1, 0.25), score=a.score, rival_score=-0.1, support=1.0, agreement=a)
+    assert v.confidence == 0.0
+    assert refusal_message(v, cfg).startswith("low confidence 0.00 (threshold 0.15): the best alignment explains 15%")
+    assert "lays as much of them or more beside each other (score -0.02 vs -0.10)" in refusal_message(v, cfg)
+    # too little explained to call it ambiguous, however close the rival
+    a = Agreement(0.1, 0.1)
+    v = Verdict(confidence=0.0, score=a.score, rival_score=0.1, support=1.0, agreement=a)
+    assert refusal_message(v, cfg).startswith("low confidence")
+    # the confidence is truncated, never rounded up to the threshold it missed
+    a = Agreement(0.5, 0.5)
+    v = Verdict(confidence=0.1496, score=0.5, rival_score=0.4626, support=1.0, agreement=a)
+    assert "confidence 0.14, threshold 0.15" in refusal_message(v, cfg)
     assert message(0.50, 0.48).startswith("ambiguous: two distinct alignments")
+
+
+@pytest.mark.parametrize("first_confidence, min_confidence, halves_below, searched",
+                         [(0.37, 0.4, 0.35, True),   # would be refused: the halves run though 0.37 > 0.35
+                          (0.37, 0.2, 0.35, False),  # accepted and above source_halves_below
+                          (0.30, 0.2, 0.35, True),   # below source_halves_below
+                          (0.30, 0.4, 0.0, False)])  # source_halves_below 0 = never
+def test_an_answer_is_not_refused_without_the_search_from_the_halves(monkeypatch, first_confidence, min_confidence,
+                                                                     halves_below, searched):
+    """The second search (from each half of the source) runs below ``source_halves_below`` and below
+    ``min_confidence``: an answer the threshold would refuse always gets it (0 turns it off)."""
+    from gctr_cli.engine import gctr
+    from gctr_cli.engine.verdict import Verdict
+
+    calls: list[int] = []
+
+    def fake_decide(pool, *args, **kwargs):
+        return pool[0].transform, Verdict(confidence=first_confidence, score=0.3, rival_score=0.2,
+                                          agreement=Agreement(0.3, 0.3), support=1.0)
+
+    def fake_halves(*args, **kwargs):
+        calls.append(1)
+        return []
+
+    monkeypatch.setattr(gctr, "decide", fake_decide)
+    monkeypatch.setattr(gctr, "half_candidates", fake_halves)
+    pair, _ = make_part_pair(_model("bunny"), np.random.default_rng(0), patch_is_source=True, n_source=4000)
+    cfg = EngineConfig(min_confidence=min_confidence, source_halves_below=halves_below)
+    res = gctr.register(pair.source, pair.target, cfg, seed=0)
+    assert bool(calls) == searched
+    assert res.confidence == first_confidence
+    if first_confidence < min_confidence:
+        assert res.status == "failed" and f"threshold {min_confidence:.2f}" in res.message, res.message

@@ -23,8 +23,9 @@ from gctr_cli.engine.verdict import (
     surface_agreement,
 )
 
-#: below this agreement a refused answer explains too little to call the data "ambiguous"
-AMBIGUITY_MIN_SCORE = 0.15
+#: below this share of the two surfaces explained (the plain agreement), a refused answer explains too
+#: little to call the data "ambiguous"
+AMBIGUITY_MIN_AGREEMENT = 0.15
 
 
 def tight_tolerances(src_ref: RefinementCloud, tgt_ref: RefinementCloud, scale: float,
@@ -98,10 +99,10 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
 
     The search ranks transforms by their surface agreement at the inlier distance; the best few
     *distinct* ones (each moves the source by more than ``verdict.distinct_ratio`` from the others)
-    are refined and compared at the verdict's tight tolerances, so that no transform wins by
-    precision alone. The best is the answer; the confidence weighs its tight agreement against the
-    best rival's (a rival aligns the data the answer aligns differently: :func:`shared_displacement`).
-    """
+    are refined and compared by their score at the verdict's tight tolerances (agreement less
+    conflicts), so that no transform wins by precision alone. The best is the answer; the confidence
+    weighs its score against the best rival's (a rival aligns the data the answer aligns differently:
+    :func:`shared_displacement`)."""
     v = cfg.verdict
     pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
     pool.sort(key=lambda item: -item[1].score)
@@ -134,7 +135,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     rivals = [a.score for T, a in refined[1:] if rival(T)]
     unrefined = islice((T for T, _ in pool if rival(T)), v.rival_pool)
     rivals += [_tight_agreement(T, src_ref, tgt_ref, tolerances).score for T in unrefined]
-    rival_score = max(rivals, default=0.0)
+    rival_score = max(rivals, default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
     support = sum(not distinct(T_answer, c.transform) for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)
     return T_answer, Verdict(confidence=conf, score=agreement.score, rival_score=rival_score, agreement=agreement,
@@ -143,18 +144,24 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
 
 def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     """Why an answer below the confidence threshold is refused, in words: *ambiguous* when a distinct
-    rival scores nearly as much on a well-explained pair (the answer puts at least ``AMBIGUITY_MIN_SCORE``
-    of the two surfaces on each other), else *low confidence* with how much of the data the best
-    alignment explains and by how many points of score it leads."""
+    rival scores nearly as much on a well-explained pair (the answer puts at least
+    ``AMBIGUITY_MIN_AGREEMENT`` of the two surfaces on each other), else *low confidence* with how much
+    of the data the best alignment explains and by how many points of score it leads (or that it lays
+    more of the clouds beside each other than on each other). The confidence is shown truncated to two
+    decimals, so that a refused answer never reads as reaching the threshold."""
+    shown = f"{np.floor(verdict.confidence * 100) / 100:.2f}"
     scores = f"score {verdict.score:.2f} vs {verdict.rival_score:.2f}"
     explained = 0.5 * (verdict.agreement.source + verdict.agreement.target)
     lead = verdict.score - verdict.rival_score
     if (verdict.score > 0 and verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score
-            and explained >= AMBIGUITY_MIN_SCORE):
+            and explained >= AMBIGUITY_MIN_AGREEMENT):
         return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
-                f"confidence {verdict.confidence:.2f}, threshold {cfg.min_confidence:.2f})")
+                f"confidence {shown}, threshold {cfg.min_confidence:.2f})")
+    head = (f"low confidence {shown} (threshold {cfg.min_confidence:.2f}): the best alignment explains "
+            f"{100 * explained:.0f}% of the two surfaces")
+    if verdict.score <= 0:
+        return f"{head} and lays as much of them or more beside each other ({scores})"
     points = round(100 * lead)
     margin = ("scores no more than" if points <= 0 else
               f"scores only {points} point{'' if points == 1 else 's'} more than")
-    return (f"low confidence {verdict.confidence:.2f} (threshold {cfg.min_confidence:.2f}): the best alignment "
-            f"explains {100 * explained:.0f}% of the two surfaces and {margin} a distinct alternative ({scores})")
+    return f"{head} and {margin} a distinct alternative ({scores})"

@@ -21,7 +21,8 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    (SVD; Umeyama or edge-ratio scale) — until the salient points stop moving. The search stops
    early once two hypotheses settle on the same well-supported transform, or one hypothesis alone
    explains most of both clouds;
-4b. when the verdict (5) on those candidates is unsure (confidence below ``source_halves_below``), the
+4b. when the verdict (5) on those candidates is unsure (confidence below ``source_halves_below``, and
+   below ``min_confidence`` whatever that is: an answer is not refused without it), the
    search again from each half of the source (:mod:`~gctr_cli.engine.halves`: an overlap that is a slab
    at one end of the source), and the verdict decides among all candidates;
 5. verdict (:mod:`~gctr_cli.engine.decide`, measures in :mod:`~gctr_cli.engine.verdict`): the best
@@ -146,9 +147,10 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     verdict: Verdict | None = None
     if candidates:
         T_n, verdict = judge(candidates)
-    if verdict is None or verdict.confidence < cfg.source_halves_below:
-        # The first search left the answer in doubt: search again from each half of the source
-        # (an overlap that is a slab at one end of it), and decide among all candidates.
+    halves_below = max(cfg.source_halves_below, cfg.min_confidence) if cfg.source_halves_below > 0 else 0.0
+    if verdict is None or verdict.confidence < halves_below:
+        # The first search left the answer in doubt (or would be refused): search again from each half
+        # of the source (an overlap that is a slab at one end of it), and decide among all candidates.
         extra = half_candidates(ns.points, src, tgt, bounds_n, cfg, seed, timer)
         if extra:
             candidates = candidates + extra
@@ -179,7 +181,8 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         confidence=verdict.confidence, timings=timer.timings,
         evidence={"score": verdict.score, "rival_score": verdict.rival_score,
                   "source_agreement": verdict.agreement.source, "target_agreement": verdict.agreement.target,
-                  "support": verdict.support},
+                  "source_conflict": verdict.agreement.conflict_source,
+                  "target_conflict": verdict.agreement.conflict_target, "support": verdict.support},
     )
 
 
@@ -187,10 +190,11 @@ def score_transform(source: np.ndarray, target: np.ndarray, transform: np.ndarra
                     config: EngineConfig | None = None, seed: int = 0) -> float:
     """The engine's own score of any transform ``transform`` (original coordinates, source -> target).
 
-    Uses the same preparation and the same objective the engine ranks its candidates with, so
-    comparing the score of the ground truth with the score of the engine's answer tells whether a
-    failure is a search miss (truth scores higher), an objective that cannot separate them (answer
-    scores higher) or a precision problem (equal within noise).
+    Uses the same preparation and the same objective the search ranks its candidates with (surface
+    agreement at the inlier distance; the verdict's final score also subtracts conflicts, see
+    :mod:`~gctr_cli.engine.verdict`), so comparing the score of the ground truth with the score of the
+    engine's answer tells whether a failure is a search miss (truth scores higher), an objective that
+    cannot separate them (answer scores higher) or a precision problem (equal within noise).
     """
     cfg = config if config is not None else EngineConfig()
     timer = StageTimer({})

@@ -17,9 +17,9 @@ Two measures, both on the working clouds in normalised coordinates:
   evidence against the transform, and costs ``verdict.conflict_weight`` of an agreeing point. A
   half-turned slab or a low-overlap crop laid beside the right place puts a third to a half of the
   data beside the other surface; the right pose leaves only noise and the overlap's border there.
-* **confidence** in [0, 1]: how far the answer's agreement leads the best *distinct* alternative
-  (a second transform that explains the data almost as well means the data do not single out one
-  answer). See :func:`confidence`.
+* **confidence** in [0, 1]: how far the answer's score leads the best *distinct* alternative, or
+  "no alignment" (score 0) when every alternative scores less (a second transform that explains the
+  data almost as well means the data do not single out one answer). See :func:`confidence`.
 """
 
 from __future__ import annotations
@@ -89,8 +89,9 @@ def normal_space_weights(normals: np.ndarray, exponent: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Agreement:
-    """Shares of the source and target samples that the transform puts on the other surface (each
-    sample point weighted by :func:`normal_space_weights`, when the surface has weights)."""
+    """Shares of the source and target samples that the transform puts on the other surface, and (when
+    conflicts are counted, in the verdict) the shares it puts beside it (each sample point weighted by
+    :func:`normal_space_weights`, when the surface has weights)."""
 
     source: float
     target: float
@@ -123,7 +124,8 @@ def surface_matches(points: np.ndarray, normals: np.ndarray | None, other_normal
 def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surface, distance: float,
                       min_cos: float, weights: np.ndarray | None = None, near: float = 0.0) -> tuple[float, float]:
     """(weighted share of ``moved`` on the ``other`` surface — nearest partner within ``distance`` with an
-    agreeing normal, as :func:`surface_matches` —, weighted share within ``near`` of it but not on it).
+    agreeing normal, as :func:`surface_matches` —, weighted share whose nearest partner is within the
+    larger of ``near`` and ``distance`` but that is not on the surface; 0 when ``near`` is 0).
     One neighbour query serves both (the nearest partner is the same)."""
     if len(moved) == 0:
         return 0.0, 0.0
@@ -136,7 +138,7 @@ def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surfa
         cos = np.abs(np.einsum("ij,ij->i", moved_normals[i], other.normals[j[i]]))
         on[i[cos < min_cos]] = False
     total = w.sum()
-    conflict = float(w[close & ~on].sum() / total) if near > distance else 0.0
+    conflict = float(w[close & ~on].sum() / total) if near > 0 else 0.0
     return float(w[on].sum() / total), conflict
 
 
@@ -157,9 +159,12 @@ def _pulled_back(T: np.ndarray, s: float, R: np.ndarray, points: np.ndarray) -> 
 
 def surface_agreement(T: np.ndarray, src: Surface, tgt: Surface, distance: float,
                       max_angle_deg: float = 30.0, near: float = 0.0, conflict_weight: float = 0.0) -> Agreement:
-    """Surface agreement of the similarity ``T`` (normalised source -> normalised target).
+    """Surface agreement of the similarity ``T`` (normalised source -> normalised target), with the
+    conflict shares (points within ``near`` of the other cloud but not on its surface) when
+    ``conflict_weight`` > 0.
 
-    ``distance`` is in target units; the backward test uses ``distance / s`` in source units.
+    ``distance`` and ``near`` are in target units; the backward test uses ``distance / s`` and
+    ``near / s`` in source units.
     """
     scale_rotation = _scale_rotation(T)
     if scale_rotation is None:
@@ -234,20 +239,23 @@ def shared_displacement(T: np.ndarray, T_answer: np.ndarray, shared: SharedData,
 @dataclass(frozen=True)
 class Verdict:
     confidence: float
-    score: float  # agreement score of the answer
-    rival_score: float  # best score among distinct alternatives (0 if none)
+    score: float  # score of the answer (Agreement.score: agreement less conflicts; can be negative)
+    rival_score: float  # best score among distinct alternatives (as computed, so it can be negative; 0 if none)
     agreement: Agreement
     support: float  # share of the independent overlap searches that ended at the answer
 
 
 def confidence(score: float, rival_score: float, full_margin: float) -> float:
-    """Confidence in [0, 1] of an answer with agreement ``score`` whose best distinct rival scores
-    ``rival_score``: the answer's lead over the rival, ``(score - rival_score) / full_margin``,
-    clipped to [0, 1].
+    """Confidence in [0, 1] of an answer with score ``score`` whose best distinct rival scores
+    ``rival_score``: the answer's lead over the rival — or over 0, the score of putting the source
+    nowhere near the target, when the rival scores less —, ``(score - max(rival_score, 0)) /
+    full_margin``, clipped to [0, 1].
 
-    0 means another transform explains the data as well as the answer (or better); 1 means the
-    answer explains at least ``full_margin`` more of both clouds than anything else the search
-    found. A lead rather than a ratio: on sparse, noisy or low-overlap data every agreement is
-    small, and a small answer with nothing near it is still a clear answer.
+    0 means another transform explains the data as well as the answer (or better), or the answer
+    lays more of the clouds beside each other than on each other (a score below 0 is no evidence
+    for it, however much worse the rivals are); 1 means the answer's score leads anything else the
+    search found by at least ``full_margin``. A lead rather than a ratio: on sparse, noisy or
+    low-overlap data every agreement is small, and a small answer with nothing near it is still a
+    clear answer.
     """
-    return float(np.clip((score - rival_score) / full_margin, 0.0, 1.0))
+    return float(np.clip((score - max(rival_score, 0.0)) / full_margin, 0.0, 1.0))
