@@ -114,11 +114,21 @@ def surface_matches(points: np.ndarray, normals: np.ndarray | None, other_normal
     not directions, since PCA normals have no sign)."""
     d, j = tree.query(points, distance_upper_bound=distance)
     keep = np.isfinite(d)
-    if normals is not None and min_cos > 0:
-        cos = np.abs(np.einsum("ij,ij->i", normals[keep], other_normals[j[keep]]))
-        keep[np.flatnonzero(keep)[cos < min_cos]] = False
+    if normals is not None:
+        _drop_disagreeing_normals(keep, j, normals, other_normals, min_cos)
     i = np.flatnonzero(keep)
     return i, j[i]
+
+
+def _drop_disagreeing_normals(keep: np.ndarray, j: np.ndarray, normals: np.ndarray, other_normals: np.ndarray,
+                              min_cos: float) -> None:
+    """Clear ``keep`` (in place) where the normal of a kept point and that of its partner ``j`` differ
+    (|cos| < ``min_cos``; lines, not directions); nothing to do when ``min_cos`` is 0."""
+    if min_cos <= 0:
+        return
+    kept = np.flatnonzero(keep)
+    cos = np.abs(np.einsum("ij,ij->i", normals[kept], other_normals[j[kept]]))
+    keep[kept[cos < min_cos]] = False
 
 
 def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surface, distance: float,
@@ -133,10 +143,7 @@ def _share_on_surface(moved: np.ndarray, moved_normals: np.ndarray, other: Surfa
     d, j = other.tree.query(moved, distance_upper_bound=max(distance, near))
     close = np.isfinite(d)
     on = close & (d <= distance)
-    if min_cos > 0:
-        i = np.flatnonzero(on)
-        cos = np.abs(np.einsum("ij,ij->i", moved_normals[i], other.normals[j[i]]))
-        on[i[cos < min_cos]] = False
+    _drop_disagreeing_normals(on, j, moved_normals, other.normals, min_cos)
     total = w.sum()
     conflict = float(w[close & ~on].sum() / total) if near > 0 else 0.0
     return float(w[on].sum() / total), conflict
