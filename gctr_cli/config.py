@@ -188,11 +188,11 @@ class EngineConfig(_Strict):
     part_regions: tuple[float, ...] = Field(
         (0.45,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
     source_halves_below: float = Field(
-        0.35, ge=0, le=1,
+        0.4, ge=0, le=1,
         description="below this confidence of the first answer, search again from each half of the source (split "
         "at the median along its principal axes): finds an overlap that is a slab at one end of the source; "
         "it also runs below min_confidence, so an answer is not refused without it; 0 = never (then use "
-        "min_confidence >= 0.35: the default threshold counts on this search)")
+        "min_confidence >= 0.4: the default threshold counts on this search)")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
