@@ -874,7 +874,7 @@ def test_refinement_tolerances_follow_the_smaller_cloud():
     scale explains the surfaces as well as the truth; the verdict's refinement trims relative to the
     smaller cloud (the patch) and stays within 2% of the true scale."""
     from data_scripts.make_benchmark import pair_rng
-    from gctr_cli.engine.decide import _refine, tight_tolerances
+    from gctr_cli.engine.decide import TightTest, _refine, tight_tolerances
     from gctr_cli.engine.prepare import RefinementCloud, StageTimer
 
     cfg = EngineConfig()
@@ -890,7 +890,7 @@ def test_refinement_tolerances_follow_the_smaller_cloud():
                                            symmetric=True, max_matches=r.max_matches)
     assert split(T_whole)[0] / s_true - 1 > 0.04
     T_refined, _ = _refine(T_true, src_ref, tgt_ref, cfg, (0.01, 100.0), StageTimer({}),
-                           tight_tolerances(src_ref, tgt_ref, s_true, cfg))
+                           TightTest(*tight_tolerances(src_ref, tgt_ref, s_true, cfg)))
     assert abs(split(T_refined)[0] / s_true - 1) < 0.02
     assert transform_errors(T_refined, T_true, 1.0).rot_err_deg < 1.0
 

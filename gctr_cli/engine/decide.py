@@ -5,6 +5,7 @@ is the confidence (:mod:`gctr_cli.engine.verdict` has the measures)."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from itertools import islice
 
 import numpy as np
@@ -59,21 +60,33 @@ def smaller_cloud(scale: float) -> float:
     return min(1.0, scale) if np.isfinite(scale) and scale > 0 else 1.0
 
 
-def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
-                     tolerances: tuple[float, ...]) -> Agreement:
-    """Surface agreement at the verdict's tight ``tolerances`` (:func:`tight_tolerances`), on the
-    refinement clouds."""
-    return surface_agreement(T, src_ref.surface, tgt_ref.surface, *tolerances)
+@dataclass(frozen=True)
+class TightTest:
+    """How the verdict's final comparison scores a transform: the tight distance (normalised target
+    units) and normal angle (degrees) of :func:`tight_tolerances`, and the conflicts — points within
+    ``near`` of the other cloud but off its surface, each costing ``conflict_weight`` of an agreeing
+    point (0: not counted)."""
+
+    distance: float
+    angle_deg: float
+    near: float = 0.0
+    conflict_weight: float = 0.0
+
+
+def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, test: TightTest) -> Agreement:
+    """Surface agreement (and conflicts) of ``T`` by the verdict's tight ``test``, on the refinement clouds."""
+    return surface_agreement(T, src_ref.surface, tgt_ref.surface, test.distance, test.angle_deg, test.near,
+                             test.conflict_weight)
 
 
 def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
             bounds_n: tuple[float, float], timer: StageTimer,
-            tolerances: tuple[float, ...]) -> tuple[np.ndarray, Agreement]:
+            test: TightTest) -> tuple[np.ndarray, Agreement]:
     """Scaled ICP polish of a coarse transform on the refinement clouds, kept only when its tight surface
     agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
     verdict's objective exposes it). Returns the transform and its tight agreement."""
     r, v = cfg.refine, cfg.verdict
-    before = _tight_agreement(T_n, src_ref, tgt_ref, tolerances)
+    before = _tight_agreement(T_n, src_ref, tgt_ref, test)
     if not r.enabled:
         return T_n, before
     t = time.perf_counter()
@@ -89,7 +102,7 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
         T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, start, end, bounds_n,
                                     tgt_ref.tree)
     timer.add("refine", t)
-    after = _tight_agreement(T_r, src_ref, tgt_ref, tolerances)
+    after = _tight_agreement(T_r, src_ref, tgt_ref, test)
     return (T_r, after) if after.score >= before.score else (T_n, before)
 
 
@@ -118,9 +131,9 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             if len(finalists) == v.refined_finalists:
                 break
     scale = similarity_scale(pool[0][0])
-    tolerances = (*tight_tolerances(src_ref, tgt_ref, scale, cfg), v.conflict_ratio * smaller_cloud(scale),
-                  v.conflict_weight)
-    refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, tolerances) for T in finalists),
+    test = TightTest(*tight_tolerances(src_ref, tgt_ref, scale, cfg), near=v.conflict_ratio * smaller_cloud(scale),
+                     conflict_weight=v.conflict_weight)
+    refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists),
                      key=lambda x: -x[1].score)
     T_answer, agreement = refined[0]
     # Rivals: the other refined finalists, and (unrefined, so at a disadvantage) the best of the
@@ -134,7 +147,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
 
     rivals = [a.score for T, a in refined[1:] if rival(T)]
     unrefined = islice((T for T, _ in pool if rival(T)), v.rival_pool)
-    rivals += [_tight_agreement(T, src_ref, tgt_ref, tolerances).score for T in unrefined]
+    rivals += [_tight_agreement(T, src_ref, tgt_ref, test).score for T in unrefined]
     rival_score = max(rivals, default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
     support = sum(not distinct(T_answer, c.transform) for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)
