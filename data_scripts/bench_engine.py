@@ -401,6 +401,34 @@ def ensure_data(data: Path, seed: int = 0) -> Path:
     return manifest
 
 
+def add_pair_tool_arguments(p: Any, csv_rows: str) -> None:
+    """The options every per-pair developer tool takes (``settle_margin``, ``truth_score``): ``--data``,
+    ``--levels``, ``-j``, ``-c``, ``--set``, ``--out``, and ``--csv`` with ``csv_rows`` (what a row is)."""
+    p.add_argument("--data", type=Path, required=True, help="folder with a pairs.csv (make_benchmark generate)")
+    p.add_argument("--levels", default=",".join(ALL_LEVELS), help="comma-separated levels (default: all)")
+    p.add_argument("-j", "--jobs", type=int, default=1, help="pairs in parallel (default 1)")
+    p.add_argument("-c", "--config", type=Path, help="config file (default: the built-in defaults)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="dotted config override, e.g. engine.tensor.knn=80 (repeatable)")
+    p.add_argument("--out", type=Path, help="markdown report (default: stdout)")
+    p.add_argument("--csv", type=Path, help=f"one row per {csv_rows}")
+
+
+def write_tool_outputs(report: str, rows: list[dict[str, Any]], out: Path | None, csv_path: Path | None,
+                       fields: list[str]) -> None:
+    """A per-pair tool's results: the markdown ``report`` to ``out`` (stdout without it) and ``rows`` with the
+    columns ``fields`` to ``csv_path`` if given."""
+    if csv_path:
+        with open(csv_path, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.DictWriter(fh, fieldnames=fields, restval="")
+            writer.writeheader()
+            writer.writerows(rows)
+    if out:
+        out.write_text(report, encoding="utf-8")
+    else:
+        print(report, end="")
+
+
 def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
                config_dict: dict[str, Any], quick_pairs: int = QUICK_PAIRS) -> list[dict[str, Any]]:
     """One task per selected pair, in manifest order (``--quick``: first ``quick_pairs`` per model per level)."""

@@ -35,7 +35,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from data_scripts.bench_engine import ALL_LEVELS, BenchError, load_tasks, resolve_config
+from data_scripts.bench_engine import (
+    BenchError,
+    add_pair_tool_arguments,
+    load_tasks,
+    resolve_config,
+    write_tool_outputs,
+)
 
 THRESHOLDS = (0.4, 0.45, 0.5, 0.52, 0.55, 0.6)
 FULL_THRESHOLDS = (0.35, 0.4, 0.42, 0.45, 0.48, 0.5)
@@ -170,15 +176,8 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_scripts.settle_margin", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, required=True, help="folder with a pairs.csv (make_benchmark generate)")
+    add_pair_tool_arguments(p, "candidate")
     p.add_argument("--from-csv", type=Path, help="render the report from the --csv of an earlier run (no engine run)")
-    p.add_argument("--levels", default=",".join(ALL_LEVELS), help="comma-separated levels (default: all)")
-    p.add_argument("-j", "--jobs", type=int, default=1, help="pairs in parallel (default 1)")
-    p.add_argument("-c", "--config", type=Path, help="config file (default: the built-in defaults)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="dotted config override, e.g. engine.tensor.knn=80 (repeatable)")
-    p.add_argument("--out", type=Path, help="markdown report (default: stdout)")
-    p.add_argument("--csv", type=Path, help="one row per candidate")
     return p
 
 
@@ -198,15 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
             rows = [r for pair_rows in pool.imap(candidates_of, tasks) for r in pair_rows]
     report = render(rows, levels, args.data, len(tasks), alone)
-    if args.csv:
-        with open(args.csv, "w", newline="", encoding="utf-8") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["pair_id"])
-            writer.writeheader()
-            writer.writerows(rows)
-    if args.out:
-        args.out.write_text(report, encoding="utf-8")
-    else:
-        print(report, end="")
+    write_tool_outputs(report, rows, args.out, args.csv, list(rows[0]) if rows else ["pair_id"])
     return 0
 
 

@@ -182,3 +182,19 @@ def subprocess_env():
 
 
 PYTHON = sys.executable
+
+
+@pytest.fixture(scope="session")
+def easy_bunny_pair(tmp_path_factory) -> Path:
+    """A benchmark folder (``pairs.csv``, generated like ``make_benchmark``) with one easy bunny pair
+    (3000-point source): the developer tools' fixture (settle_margin, truth_score)."""
+    from data_scripts import make_benchmark as mb
+    from gctr_cli.io import load_point_cloud
+
+    out = tmp_path_factory.mktemp("easy_bunny") / "data"
+    bunny = load_point_cloud(mb.DATA_DIR / "models" / "bunny.ply")
+    pair = mb.make_pair(bunny, mb.LEVELS["easy"], mb.pair_rng(0, "easy", "bunny", 0), n_source=3000)
+    row = mb.write_pair(out / "easy", "easy_bunny_0", pair, "ply")
+    mb.write_manifest(out / "pairs.csv", [{**row, **{c: f"easy/{row[c]}" for c in ("source", "target", "gt")},
+                                           "model": "bunny", "level": "easy"}])
+    return out

@@ -6,35 +6,19 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from data_scripts import bench_engine as be
-from data_scripts import make_benchmark as mb
 from data_scripts import settle_margin as sm
 
 
-@pytest.fixture(scope="module")
-def easy_pair(tmp_path_factory) -> Path:
-    """``pairs.csv`` with one easy bunny pair (3000-point source)."""
-    from gctr_cli.io import load_point_cloud
-
-    out = tmp_path_factory.mktemp("margin") / "data"
-    bunny = load_point_cloud(mb.DATA_DIR / "models" / "bunny.ply")
-    pair = mb.make_pair(bunny, mb.LEVELS["easy"], mb.pair_rng(0, "easy", "bunny", 0), n_source=3000)
-    row = mb.write_pair(out / "easy", "easy_bunny_0", pair, "ply")
-    mb.write_manifest(out / "pairs.csv", [{**row, **{c: f"easy/{row[c]}" for c in ("source", "target", "gt")},
-                                           "model": "bunny", "level": "easy"}])
-    return out
-
-
-def test_every_hypothesis_runs_and_the_first_candidate_is_the_engines_answer(easy_pair):
+def test_every_hypothesis_runs_and_the_first_candidate_is_the_engines_answer(easy_bunny_pair):
     """With settling off, every hypothesis of the plan yields a candidate; on a clean pair the first one is
     right and reaches ``settle_alone``, so a normal run stops there and answers from it."""
     from gctr_cli.config import EngineConfig
     from gctr_cli.engine.search import search_plan
 
     config, config_dict = be.resolve_config(None, sm.NEVER_SETTLE)
-    task = be.load_tasks(easy_pair / "pairs.csv", ["easy"], False, config, config_dict)[0]
+    task = be.load_tasks(easy_bunny_pair / "pairs.csv", ["easy"], False, config, config_dict)[0]
     rows = sm.candidates_of(task)
     assert [r["order"] for r in rows] == list(range(len(search_plan(EngineConfig()))))
     first = rows[0]

@@ -73,7 +73,16 @@ class TightTest:
     conflict_weight: float = 0.0
 
 
-def _tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, test: TightTest) -> Agreement:
+def tight_test(src_ref: RefinementCloud, tgt_ref: RefinementCloud, scale: float, cfg: EngineConfig) -> TightTest:
+    """The verdict's final test for transforms of about ``scale`` (normalised units): the tolerances of
+    :func:`tight_tolerances` and the configured conflicts (``verdict.conflict_ratio`` of the smaller
+    cloud, ``verdict.conflict_weight``)."""
+    v = cfg.verdict
+    return TightTest(*tight_tolerances(src_ref, tgt_ref, scale, cfg), near=v.conflict_ratio * smaller_cloud(scale),
+                     conflict_weight=v.conflict_weight)
+
+
+def tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, test: TightTest) -> Agreement:
     """Surface agreement (and conflicts) of ``T`` by the verdict's tight ``test``, on the refinement clouds."""
     return surface_agreement(T, src_ref.surface, tgt_ref.surface, test.distance, test.angle_deg, test.near,
                              test.conflict_weight)
@@ -86,7 +95,7 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
     agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
     verdict's objective exposes it). Returns the transform and its tight agreement."""
     r, v = cfg.refine, cfg.verdict
-    before = _tight_agreement(T_n, src_ref, tgt_ref, test)
+    before = tight_agreement(T_n, src_ref, tgt_ref, test)
     if not r.enabled:
         return T_n, before
     t = time.perf_counter()
@@ -102,7 +111,7 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
         T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, start, end, bounds_n,
                                     tgt_ref.tree)
     timer.add("refine", t)
-    after = _tight_agreement(T_r, src_ref, tgt_ref, test)
+    after = tight_agreement(T_r, src_ref, tgt_ref, test)
     return (T_r, after) if after.score >= before.score else (T_n, before)
 
 
@@ -130,9 +139,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             finalists.append(T)
             if len(finalists) == v.refined_finalists:
                 break
-    scale = similarity_scale(pool[0][0])
-    test = TightTest(*tight_tolerances(src_ref, tgt_ref, scale, cfg), near=v.conflict_ratio * smaller_cloud(scale),
-                     conflict_weight=v.conflict_weight)
+    test = tight_test(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
     refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists),
                      key=lambda x: -x[1].score)
     T_answer, agreement = refined[0]
@@ -147,7 +154,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
 
     rivals = [a.score for T, a in refined[1:] if rival(T)]
     unrefined = islice((T for T, _ in pool if rival(T)), v.rival_pool)
-    rivals += [_tight_agreement(T, src_ref, tgt_ref, test).score for T in unrefined]
+    rivals += [tight_agreement(T, src_ref, tgt_ref, test).score for T in unrefined]
     rival_score = max(rivals, default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
     support = sum(not distinct(T_answer, c.transform) for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)

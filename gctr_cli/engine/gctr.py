@@ -46,14 +46,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.config import EngineConfig
-from gctr_cli.engine.decide import decide, refusal_message
+from gctr_cli.engine.decide import decide, refusal_message, similarity_scale, tight_agreement, tight_test
 from gctr_cli.engine.halves import half_candidates
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, prepare_cloud
 from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, normalise, validate_cloud
 from gctr_cli.engine.refine import evaluate_fit
 from gctr_cli.engine.result import RegistrationResult
 from gctr_cli.engine.search import Candidate, search, search_plan
-from gctr_cli.engine.verdict import Verdict, displacement, surface_agreement
+from gctr_cli.engine.verdict import Agreement, Verdict, displacement, surface_agreement
 from gctr_cli.geometry import split
 
 
@@ -89,14 +89,10 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     score the candidates themselves. Raises :class:`DegenerateCloudError` for clouds the engine
     cannot work on.
     """
-    src_raw = validate_cloud(source, "source")
-    tgt_raw = validate_cloud(target, "target")
+    ns, nt, src, tgt, rng_refine = _prepared_pair(source, target, cfg, seed, timer)
     plan = search_plan(cfg)
-    root = np.random.SeedSequence(seed)
-    rng_src, rng_tgt, rng_refine, *rng_overlaps = [np.random.default_rng(s) for s in root.spawn(3 + len(plan))]
-    ns, nt = normalise(src_raw), normalise(tgt_raw)
-    src = prepare_cloud(ns.points, cfg, rng_src, timer)
-    tgt = prepare_cloud(nt.points, cfg, rng_tgt, timer)
+    # the pair's generators: source, target, verdict (spawned by _prepared_pair), then one per hypothesis
+    rng_overlaps = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3 + len(plan))[3:]]
     if len(src.salient) < 4 or len(tgt.salient) < 4:
         raise DegenerateCloudError(f"too few salient points (source {len(src.salient)}, target "
                                    f"{len(tgt.salient)}); the clouds are too small or too sparse for the "
@@ -186,6 +182,22 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     )
 
 
+def _prepared_pair(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, timer: StageTimer,
+                   ) -> tuple[NormalisedCloud, NormalisedCloud, PreparedCloud, PreparedCloud, np.random.Generator]:
+    """Stages 1-2 of both clouds exactly as :func:`run_search` prepares them (the same spawned generators),
+    and the verdict's generator: what the scoring tools below need to judge a given transform."""
+    src_raw, tgt_raw = validate_cloud(source, "source"), validate_cloud(target, "target")
+    rng_src, rng_tgt, rng_refine = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+    ns, nt = normalise(src_raw), normalise(tgt_raw)
+    return (ns, nt, prepare_cloud(ns.points, cfg, rng_src, timer), prepare_cloud(nt.points, cfg, rng_tgt, timer),
+            rng_refine)
+
+
+def _normalised(transform: np.ndarray, ns: NormalisedCloud, nt: NormalisedCloud) -> np.ndarray:
+    """A transform between the original clouds as one between their normalised versions."""
+    return np.linalg.inv(nt.to_original()) @ np.asarray(transform, dtype=float) @ ns.to_original()
+
+
 def score_transform(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
                     config: EngineConfig | None = None, seed: int = 0) -> float:
     """The engine's own score of any transform ``transform`` (original coordinates, source -> target).
@@ -197,13 +209,26 @@ def score_transform(source: np.ndarray, target: np.ndarray, transform: np.ndarra
     cannot separate them (answer scores higher) or a precision problem (equal within noise).
     """
     cfg = config if config is not None else EngineConfig()
-    timer = StageTimer({})
-    src_raw, tgt_raw = validate_cloud(source, "source"), validate_cloud(target, "target")
-    rng_src, rng_tgt = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
-    ns, nt = normalise(src_raw), normalise(tgt_raw)
-    src = prepare_cloud(ns.points, cfg, rng_src, timer)
-    tgt = prepare_cloud(nt.points, cfg, rng_tgt, timer)
-    T_n = np.linalg.inv(nt.to_original()) @ np.asarray(transform, dtype=float) @ ns.to_original()
-    return surface_agreement(T_n, src.surface, tgt.surface, cfg.inlier_distance_ratio,
+    ns, nt, src, tgt, _ = _prepared_pair(source, target, cfg, seed, StageTimer({}))
+    return surface_agreement(_normalised(transform, ns, nt), src.surface, tgt.surface, cfg.inlier_distance_ratio,
                              cfg.verdict.max_normal_angle_deg).score
 
+
+def verdict_agreement(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
+                      config: EngineConfig | None = None, seed: int = 0) -> Agreement:
+    """How the verdict's final test judges any transform (original coordinates, source -> target): the
+    shares of each cloud it lays on the other surface and beside it, and its score (agreement less
+    conflicts), on the same clouds and at the same tight tolerances as :func:`register`'s verdict
+    (taken at the transform's own scale).
+
+    Applied to the ground truth, it bounds what the engine can accept: an answer's confidence is its
+    score's lead over its best rival (or over 0) divided by ``verdict.full_margin``, so a pair whose
+    truth scores ``x`` can be accepted at most at confidence ``x / full_margin``
+    (``data_scripts.truth_score``).
+    """
+    cfg = config if config is not None else EngineConfig()
+    ns, nt, src, tgt, rng_refine = _prepared_pair(source, target, cfg, seed, StageTimer({}))
+    src_ref = RefinementCloud.of(src, ns.points, cfg, rng_refine)
+    tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, rng_refine)
+    T_n = _normalised(transform, ns, nt)
+    return tight_agreement(T_n, src_ref, tgt_ref, tight_test(src_ref, tgt_ref, similarity_scale(T_n), cfg))
