@@ -50,7 +50,7 @@ def truth_row(task: dict[str, Any]) -> dict[str, Any]:
     from gctr_cli.config import config_from_dict
     from gctr_cli.engine.gctr import verdict_agreement
     from gctr_cli.engine.preprocess import DegenerateCloudError
-    from gctr_cli.io import load_point_cloud, read_matrix
+    from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
 
     config = config_from_dict(task["config"], "<truth_score config>")
     row: dict[str, Any] = {"pair_id": task["pair_id"], "level": task["level"], "model": task["model"],
@@ -58,7 +58,7 @@ def truth_row(task: dict[str, Any]) -> dict[str, Any]:
     try:
         a = verdict_agreement(load_point_cloud(task["source"]), load_point_cloud(task["target"]),
                               read_matrix(task["gt"]), config.engine, int(task["seed"]))
-    except DegenerateCloudError as err:
+    except (DegenerateCloudError, PointCloudError, MatrixError) as err:  # the message names the file
         return {**row, "error": str(err)}
     best = min(1.0, max(0.0, a.score / config.engine.verdict.full_margin))
     return {**row, "score": a.score, "source_on": a.source, "target_on": a.target,
@@ -93,7 +93,7 @@ def render(rows: list[dict[str, Any]], data: Path, min_confidence: float) -> str
                 for r in refused]
     errors = [r for r in rows if r["error"]]
     if errors:
-        out += ["", "Pairs the engine cannot prepare:", ""] + [f"- {r['pair_id']}: {r['error']}" for r in errors]
+        out += ["", "Pairs that could not be scored:", ""] + [f"- {r['pair_id']}: {r['error']}" for r in errors]
     return "\n".join(out) + "\n"
 
 
@@ -109,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     levels = [lv.strip() for lv in args.levels.split(",") if lv.strip()]
     manifest = args.data / "pairs.csv"
+    if not levels:
+        print(f"truth_score: error: --levels {args.levels!r} names no level", file=sys.stderr)
+        return 2
     try:
         config, config_dict = resolve_config(args.config, args.overrides)
         tasks = [t for t in load_tasks(manifest, levels, False, config, config_dict) if args.match in t["pair_id"]]

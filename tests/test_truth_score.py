@@ -34,6 +34,10 @@ def test_the_truth_scores_what_the_engines_right_answer_scores_and_a_turned_pose
     assert result.status == "ok"
     assert truth.score > 0.3
     assert abs(truth.score - result.evidence["score"]) < 0.05
+    # the engine's own answer, re-scored: the same clouds and (same scale here) the same tolerances as its verdict
+    answer = verdict_agreement(source, target, result.transform, cfg, seed=3)
+    assert answer.score == pytest.approx(result.evidence["score"], abs=1e-6)
+    assert answer.source == pytest.approx(result.evidence["source_agreement"], abs=1e-6)
     c = source.mean(axis=0)
     turn = to_matrix(1.0, np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), c - np.array(
         [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ c)
@@ -65,3 +69,21 @@ def test_a_filter_that_matches_nothing_is_an_error_naming_the_manifest(easy_bunn
     assert ts.main(["--data", str(easy_bunny_pair), "--levels", "easy", "--match", "nclt"]) == 2
     err = capsys.readouterr().err
     assert "pairs.csv" in err and "nclt" in err
+
+
+def test_a_broken_cloud_is_an_error_row_naming_the_file_and_empty_levels_are_refused(easy_bunny_pair, tmp_path,
+                                                                                    capsys):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(easy_bunny_pair, data)
+    (data / "easy" / "easy_bunny_0_tgt.ply").write_text("ply\nformat nonsense\n")
+    table = tmp_path / "t.csv"
+    assert ts.main(["--data", str(data), "--levels", "easy", "--csv", str(table)]) == 0
+    out = capsys.readouterr().out
+    assert "Pairs that could not be scored:" in out and "easy_bunny_0_tgt.ply" in out
+    with open(table, encoding="utf-8") as fh:
+        row = next(csv.DictReader(fh))
+    assert row["score"] == "" and "easy_bunny_0_tgt.ply" in row["error"]
+    assert ts.main(["--data", str(data), "--levels", ","]) == 2
+    assert "names no level" in capsys.readouterr().err

@@ -78,7 +78,7 @@ class SearchRun:
     target: PreparedCloud
     bounds_n: tuple[float, float]  # the configured scale bounds in normalised units
     candidates: list[Candidate]  # one per hypothesis run that found one, in the plan's order
-    rng_refine: np.random.Generator  # the verdict's generator (spawned with the others; drawn from once)
+    rng_refine: np.random.Generator  # the verdict's generator (spawned with the others; builds both refinement clouds)
 
 
 def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int,
@@ -89,10 +89,8 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     score the candidates themselves. Raises :class:`DegenerateCloudError` for clouds the engine
     cannot work on.
     """
-    ns, nt, src, tgt, rng_refine = _prepared_pair(source, target, cfg, seed, timer)
     plan = search_plan(cfg)
-    # the pair's generators: source, target, verdict (spawned by _prepared_pair), then one per hypothesis
-    rng_overlaps = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3 + len(plan))[3:]]
+    ns, nt, src, tgt, rng_refine, rng_overlaps = _prepared_pair(source, target, cfg, seed, timer, len(plan))
     if len(src.salient) < 4 or len(tgt.salient) < 4:
         raise DegenerateCloudError(f"too few salient points (source {len(src.salient)}, target "
                                    f"{len(tgt.salient)}); the clouds are too small or too sparse for the "
@@ -183,14 +181,18 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
 
 
 def _prepared_pair(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, timer: StageTimer,
-                   ) -> tuple[NormalisedCloud, NormalisedCloud, PreparedCloud, PreparedCloud, np.random.Generator]:
-    """Stages 1-2 of both clouds exactly as :func:`run_search` prepares them (the same spawned generators),
-    and the verdict's generator: what the scoring tools below need to judge a given transform."""
+                   n_extra: int = 0) -> tuple[NormalisedCloud, NormalisedCloud, PreparedCloud, PreparedCloud,
+                                               np.random.Generator, list[np.random.Generator]]:
+    """Stages 1-2 of both clouds, the verdict's generator and ``n_extra`` more generators (the search's
+    hypotheses'): the pair's seed spawns the source's, the target's, the verdict's and then the extra
+    generators, in that order, so that :func:`run_search` and the scoring tools below prepare the clouds
+    identically."""
     src_raw, tgt_raw = validate_cloud(source, "source"), validate_cloud(target, "target")
-    rng_src, rng_tgt, rng_refine = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+    rng_src, rng_tgt, rng_refine, *extra = [np.random.default_rng(s)
+                                            for s in np.random.SeedSequence(seed).spawn(3 + n_extra)]
     ns, nt = normalise(src_raw), normalise(tgt_raw)
     return (ns, nt, prepare_cloud(ns.points, cfg, rng_src, timer), prepare_cloud(nt.points, cfg, rng_tgt, timer),
-            rng_refine)
+            rng_refine, extra)
 
 
 def _normalised(transform: np.ndarray, ns: NormalisedCloud, nt: NormalisedCloud) -> np.ndarray:
@@ -209,7 +211,7 @@ def score_transform(source: np.ndarray, target: np.ndarray, transform: np.ndarra
     cannot separate them (answer scores higher) or a precision problem (equal within noise).
     """
     cfg = config if config is not None else EngineConfig()
-    ns, nt, src, tgt, _ = _prepared_pair(source, target, cfg, seed, StageTimer({}))
+    ns, nt, src, tgt, _, _ = _prepared_pair(source, target, cfg, seed, StageTimer({}))
     return surface_agreement(_normalised(transform, ns, nt), src.surface, tgt.surface, cfg.inlier_distance_ratio,
                              cfg.verdict.max_normal_angle_deg).score
 
@@ -218,16 +220,18 @@ def verdict_agreement(source: np.ndarray, target: np.ndarray, transform: np.ndar
                       config: EngineConfig | None = None, seed: int = 0) -> Agreement:
     """How the verdict's final test judges any transform (original coordinates, source -> target): the
     shares of each cloud it lays on the other surface and beside it, and its score (agreement less
-    conflicts), on the same clouds and at the same tight tolerances as :func:`register`'s verdict
-    (taken at the transform's own scale).
+    conflicts), on the same clouds as :func:`register`'s verdict. The tight tolerances are taken at the
+    transform's own scale; ``register`` takes them at the scale of the search's best candidate, so where
+    they are widened for noise the two can differ by a few hundredths of score.
 
-    Applied to the ground truth, it bounds what the engine can accept: an answer's confidence is its
-    score's lead over its best rival (or over 0) divided by ``verdict.full_margin``, so a pair whose
-    truth scores ``x`` can be accepted at most at confidence ``x / full_margin``
+    Applied to the ground truth, it tells roughly what the engine can accept: an answer's confidence is
+    its score's lead over its best rival (or over 0) divided by ``verdict.full_margin``, and a right
+    answer scores about what the truth scores (its refinement may fit the noise a little better), so a
+    pair whose truth scores ``x`` can be accepted at about confidence ``x / full_margin`` at best
     (``data_scripts.truth_score``).
     """
     cfg = config if config is not None else EngineConfig()
-    ns, nt, src, tgt, rng_refine = _prepared_pair(source, target, cfg, seed, StageTimer({}))
+    ns, nt, src, tgt, rng_refine, _ = _prepared_pair(source, target, cfg, seed, StageTimer({}))
     src_ref = RefinementCloud.of(src, ns.points, cfg, rng_refine)
     tgt_ref = RefinementCloud.of(tgt, nt.points, cfg, rng_refine)
     T_n = _normalised(transform, ns, nt)
