@@ -24,7 +24,6 @@ has it. Tune on the tuning sets (seeds 1, 2, 3), never on the report set (seed 0
 from __future__ import annotations
 
 import argparse
-import csv
 import multiprocessing
 import statistics
 import sys
@@ -54,7 +53,7 @@ def truth_row(task: dict[str, Any]) -> dict[str, Any]:
 
     config = config_from_dict(task["config"], "<truth_score config>")
     row: dict[str, Any] = {"pair_id": task["pair_id"], "level": task["level"], "model": task["model"],
-                           "overlap_src": task.get("overlap_src", "")}
+                           "overlap_src": (task.get("meta", {}).get("overlap_src") or "").strip()}
     try:
         a = verdict_agreement(load_point_cloud(task["source"]), load_point_cloud(task["target"]),
                               read_matrix(task["gt"]), config.engine, int(task["seed"]))
@@ -122,9 +121,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"truth_score: error: {manifest}: no pair of level(s) {args.levels} matches {args.match!r}",
               file=sys.stderr)
         return 2
-    with open(manifest, newline="", encoding="utf-8-sig") as fh:
-        overlap = {r["pair_id"].strip(): (r.get("overlap_src") or "").strip() for r in csv.DictReader(fh)}
-    tasks = [{**t, "overlap_src": overlap.get(t["pair_id"], "")} for t in tasks]
     with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
         rows = list(pool.imap(truth_row, tasks))
     report = render(rows, args.data, config.engine.min_confidence)

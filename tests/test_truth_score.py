@@ -39,8 +39,8 @@ def test_the_truth_scores_what_the_engines_right_answer_scores_and_a_turned_pose
     assert answer.score == pytest.approx(result.evidence["score"], abs=1e-6)
     assert answer.source == pytest.approx(result.evidence["source_agreement"], abs=1e-6)
     c = source.mean(axis=0)
-    turn = to_matrix(1.0, np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), c - np.array(
-        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ c)
+    quarter_turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    turn = to_matrix(1.0, quarter_turn, c - quarter_turn @ c)  # about the source's centre
     turned = verdict_agreement(source, target, T_gt @ turn, cfg, seed=3)
     assert turned.score < truth.score - 0.2
     assert turned.conflict_source + turned.conflict_target > truth.conflict_source + truth.conflict_target
