@@ -19,15 +19,13 @@ order, ``--resume``, lock).
   (at least one): one running and one waiting per thread, so memory stays bounded for any manifest size,
   and workers added to an adaptive cluster are used as they join. A worker plugin
   (:class:`GctrWorkerSetup`) prepares every worker, also those that join later: one-thread native
-  pools and the imports a pair needs, so import time does not count against the first pair's time
-  limit.
+  pools and the imports a pair needs, so import time does not count against the first pair's limit.
 * **Failures.** A task whose worker dies (segfault, out-of-memory kill by the nanny) ends in
   ``KilledWorker`` and gives a failed row ``worker died (...)``. The LocalCluster is started with
   ``distributed.scheduler.allowed-failures = 0`` so that, as with the local pool, the first death
   fails the pair; an external scheduler keeps its own setting (default 3 retries on other workers,
-  which also covers preempted nodes). A pair whose result was still held by a worker when another
-  pair crashed it (dask reports the task ``lost``) is run again, at most ``MAX_RESUBMITS`` times, with
-  the same seed. Any other exception of a task gives a failed row naming it.
+  which also covers preempted nodes); a pair whose result dies with a worker another pair crashed runs
+  again. Any other exception of a task gives a failed row naming it.
 * **Time limit** (best effort): a pair running longer than ``batch.time_limit_s`` (measured from when
   its task starts executing on a worker, which the task announces with a dask event; waiting for a
   worker does not count) gets the failed row ``timed out after N s``; its future is cancelled and its
@@ -79,8 +77,7 @@ __all__ = ["check_available", "dask_outcomes"]
 INSTALL_HINT = "pip install 'gctr-cli[dask]'"
 #: name of the worker plugin (re-registering replaces it)
 PLUGIN_NAME = "gctr-worker-setup"
-#: a task lost with a worker that gctr itself killed (time limit), or whose finished result was lost with a
-#: worker that another pair crashed, is resubmitted at most this often
+#: a task lost with a worker killed by gctr (time limit) or by another pair is resubmitted at most this often
 MAX_RESUBMITS = 2
 #: seconds to wait for the scheduler when connecting
 CONNECT_TIMEOUT_S = 30.0
@@ -462,21 +459,17 @@ def dask_outcomes(
                     raise _lost(scheduler, len(inflight))
                 job = inflight.pop(future)
                 starts.pop(future.key, None)
-                # 'lost': the pair's result went with a worker that died (of another pair) before it was fetched
-                result_lost = future.status == "lost"
+                result_lost = future.status == "lost"  # its result died with a worker another pair crashed
                 try:
                     lost_on = _killed_worker_address(future)
                     outcome = _outcome_of(future, job)
                 except OSError as exc:  # the result or error cannot be fetched any more
                     raise _lost(scheduler, len(inflight) + 1) from exc
                 future.release()
-                if ((result_lost or lost_on in killed_workers)
-                        and resubmits.get(job.spec.pair_id, 0) < MAX_RESUBMITS):
-                    # an innocent pair that shared the worker of a timed-out or crashed one: run it again
-                    resubmits[job.spec.pair_id] = resubmits.get(job.spec.pair_id, 0) + 1
-                    logger.info("pair %s: %s; resubmitting", job.spec.pair_id,
-                                "its result was lost with its worker" if result_lost
-                                else "its worker was replaced (another pair timed out)")
+                if (result_lost or lost_on in killed_workers) and resubmits.get(job.spec.pair_id, 0) < MAX_RESUBMITS:
+                    resubmits[job.spec.pair_id] = resubmits.get(job.spec.pair_id, 0) + 1  # an innocent pair
+                    logger.info("pair %s: %s; resubmitting", job.spec.pair_id, "its result was lost with its worker"
+                                if result_lost else "its worker was replaced (another pair timed out)")
                     pending.appendleft((job.spec, job.seed))
                     continue
                 yield outcome
