@@ -83,6 +83,17 @@ def candidates_of(task: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def candidates_or_error(task: dict[str, Any]) -> tuple[list[dict[str, Any]], str]:
+    """:func:`candidates_of`, or no rows and a message naming the file when a cloud or the ground-truth
+    matrix cannot be read: one broken pair must not stop the run."""
+    from gctr_cli.io import MatrixError, PointCloudError
+
+    try:
+        return candidates_of(task), ""
+    except (PointCloudError, MatrixError) as err:  # the message names the file
+        return [], f"{task['pair_id']}: {err}"
+
+
 def _best(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
     return max(rows, key=lambda r: r["agreement"]) if rows else None
 
@@ -112,9 +123,11 @@ def settling_candidate(pair_rows: list[dict[str, Any]], threshold: float,
     return None
 
 
-def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: int, alone: float) -> str:
+def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: int, alone: float,
+           errors: list[str] | None = None) -> str:
     """The markdown report (see the module docstring); ``alone`` is the ``settle_alone`` of the
-    ``settle_full`` table (a row ``full t`` stops the full-overlap hypothesis at min(t, alone))."""
+    ``settle_full`` table (a row ``full t`` stops the full-overlap hypothesis at min(t, alone)); ``errors``
+    lists the pairs that could not be read."""
     def fmt(r: dict[str, Any] | None) -> str:
         if r is None:
             return "–"
@@ -162,6 +175,8 @@ def render(rows: list[dict[str, Any]], levels: list[str], data: Path, n_pairs: i
             "| wrong basin |",
             "|---|---:|---:|---:|---:|---:|"]
     out += [stops_row(f"full {t}", full_rows, t, alone, t) for t in FULL_THRESHOLDS]
+    if errors:
+        out += ["", "Pairs that could not be read:", ""] + [f"- {e}" for e in errors]
     return "\n".join(out) + "\n"
 
 
@@ -191,12 +206,17 @@ def main(argv: list[str] | None = None) -> int:
     except BenchError as err:
         print(f"settle_margin: error: {err}", file=sys.stderr)
         return 2
+    errors: list[str] = []
     if args.from_csv:
         rows = read_rows(args.from_csv)
     else:
         with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
-            rows = [r for pair_rows in pool.imap(candidates_of, tasks) for r in pair_rows]
-    report = render(rows, levels, args.data, len(tasks), alone)
+            results = list(pool.imap(candidates_or_error, tasks))
+        rows = [r for pair_rows, _ in results for r in pair_rows]
+        errors = [e for _, e in results if e]
+        for e in errors:
+            print(f"settle_margin: error: {e}", file=sys.stderr)
+    report = render(rows, levels, args.data, len(tasks), alone, errors)
     write_tool_outputs(report, rows, args.out, args.csv, list(rows[0]) if rows else ["pair_id"])
     return 0
 

@@ -144,3 +144,17 @@ def test_a_pair_the_engine_rejects_has_no_candidates(tmp_path):
     task = {"pair_id": "planar", "level": "easy", "model": "none", "seed": 0, "config": config_dict,
             "source": str(tmp_path / "s.ply"), "target": str(tmp_path / "t.ply"), "gt": str(tmp_path / "gt.txt")}
     assert sm.candidates_of(task) == []
+
+
+def test_a_broken_cloud_is_reported_by_name_and_does_not_stop_the_run(easy_bunny_pair, tmp_path, capsys):
+    """A pair whose cloud cannot be read gets a line naming the file in the report (and on stderr) instead
+    of an exception that would stop the whole run."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(easy_bunny_pair, data)
+    (data / "easy" / "easy_bunny_0_tgt.ply").write_text("ply\nformat nonsense\n")
+    assert sm.main(["--data", str(data), "--levels", "easy"]) == 0
+    captured = capsys.readouterr()
+    assert "Pairs that could not be read:" in captured.out and "easy_bunny_0_tgt.ply" in captured.out
+    assert "easy_bunny_0" in captured.err and "easy_bunny_0_tgt.ply" in captured.err
