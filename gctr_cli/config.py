@@ -145,7 +145,7 @@ class VerdictConfig(_Strict):
         0.1, gt=0, description="finalists differ when they move the source by more (RMS / robust diameter); "
                                "a rival must move the data the answer aligns by more")
     refined_finalists: int = Field(
-        3, ge=1, description="distinct transforms refined and compared at the tight tolerances")
+        6, ge=1, description="distinct transforms refined and compared at the tight tolerances")
     rival_pool: int = Field(30, ge=0, description="best unrefined transforms of the search also checked as rivals")
     tight_distance_ratio: float = Field(
         0.02, gt=0, lt=1, description="final comparison: distance / robust diameter of the smaller cloud")
