@@ -198,3 +198,18 @@ def easy_bunny_pair(tmp_path_factory) -> Path:
     mb.write_manifest(out / "pairs.csv", [{**row, **{c: f"easy/{row[c]}" for c in ("source", "target", "gt")},
                                            "model": "bunny", "level": "easy"}])
     return out
+
+
+#: the target of :func:`easy_bunny_pair_broken`, which cannot be read
+BROKEN_TARGET = "easy_bunny_0_tgt.ply"
+
+
+@pytest.fixture
+def easy_bunny_pair_broken(easy_bunny_pair, tmp_path) -> Path:
+    """A copy of :func:`easy_bunny_pair` whose target (``BROKEN_TARGET``) is a corrupt PLY."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(easy_bunny_pair, data)
+    (data / "easy" / BROKEN_TARGET).write_text("ply\nformat nonsense\n")
+    return data

@@ -124,4 +124,3 @@ def test_a_pair_that_kills_its_own_worker_is_not_resubmitted(monkeypatch):
     assert client.submissions == [("a", 11), ("b", 12)]
     assert out["a"].status == "failed" and out["a"].failure == "worker"
     assert "worker died" in out["a"].message and "tcp://w1" in out["a"].message
-

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from conftest import BROKEN_TARGET
 
 from data_scripts import bench_engine as be
 from data_scripts import settle_margin as sm
@@ -146,15 +147,10 @@ def test_a_pair_the_engine_rejects_has_no_candidates(tmp_path):
     assert sm.candidates_of(task) == []
 
 
-def test_a_broken_cloud_is_reported_by_name_and_does_not_stop_the_run(easy_bunny_pair, tmp_path, capsys):
+def test_a_broken_cloud_is_reported_by_name_and_does_not_stop_the_run(easy_bunny_pair_broken, capsys):
     """A pair whose cloud cannot be read gets a line naming the file in the report (and on stderr) instead
     of an exception that would stop the whole run."""
-    import shutil
-
-    data = tmp_path / "data"
-    shutil.copytree(easy_bunny_pair, data)
-    (data / "easy" / "easy_bunny_0_tgt.ply").write_text("ply\nformat nonsense\n")
-    assert sm.main(["--data", str(data), "--levels", "easy"]) == 0
+    assert sm.main(["--data", str(easy_bunny_pair_broken), "--levels", "easy"]) == 0
     captured = capsys.readouterr()
-    assert "Pairs that could not be read:" in captured.out and "easy_bunny_0_tgt.ply" in captured.out
-    assert "easy_bunny_0" in captured.err and "easy_bunny_0_tgt.ply" in captured.err
+    assert "Pairs that could not be read:" in captured.out and BROKEN_TARGET in captured.out
+    assert "easy_bunny_0" in captured.err and BROKEN_TARGET in captured.err

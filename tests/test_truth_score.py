@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import BROKEN_TARGET
 
 from data_scripts import truth_score as ts
 
@@ -71,19 +72,15 @@ def test_a_filter_that_matches_nothing_is_an_error_naming_the_manifest(easy_bunn
     assert "pairs.csv" in err and "nclt" in err
 
 
-def test_a_broken_cloud_is_an_error_row_naming_the_file_and_empty_levels_are_refused(easy_bunny_pair, tmp_path,
-                                                                                    capsys):
-    import shutil
-
-    data = tmp_path / "data"
-    shutil.copytree(easy_bunny_pair, data)
-    (data / "easy" / "easy_bunny_0_tgt.ply").write_text("ply\nformat nonsense\n")
+def test_a_broken_cloud_is_an_error_row_naming_the_file_and_empty_levels_are_refused(easy_bunny_pair_broken,
+                                                                                    tmp_path, capsys):
+    data = easy_bunny_pair_broken
     table = tmp_path / "t.csv"
     assert ts.main(["--data", str(data), "--levels", "easy", "--csv", str(table)]) == 0
     out = capsys.readouterr().out
-    assert "Pairs that could not be scored:" in out and "easy_bunny_0_tgt.ply" in out
+    assert "Pairs that could not be scored:" in out and BROKEN_TARGET in out
     with open(table, encoding="utf-8") as fh:
         row = next(csv.DictReader(fh))
-    assert row["score"] == "" and "easy_bunny_0_tgt.ply" in row["error"]
+    assert row["score"] == "" and BROKEN_TARGET in row["error"]
     assert ts.main(["--data", str(data), "--levels", ","]) == 2
     assert "names no level" in capsys.readouterr().err
