@@ -1,8 +1,9 @@
 """The dask runner's resubmission of innocent pairs, with a scripted client instead of a cluster.
 
 A pair whose finished result was lost with a worker that another pair crashed (its future turns
-``lost``) is resubmitted with the same seed, at most ``MAX_RESUBMITS`` times; a pair that crashes its
-own worker is not. On a real cluster the race is rare and timing-dependent (tests/test_dask.py runs the
+``lost``), or that was running on a worker gctr replaced because another pair timed out, is
+resubmitted with the same seed, at most ``MAX_RESUBMITS`` times; a pair that crashes its own worker is
+not. On a real cluster the race is rare and timing-dependent (tests/test_dask.py runs the
 real thing and did not hit it in 25 logged runs); here every future's fate is scripted, so each path
 runs deterministically.
 """
@@ -10,6 +11,7 @@ runs deterministically.
 from __future__ import annotations
 
 import contextlib
+import time
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -25,10 +27,13 @@ from gctr_cli.outcome import PairOutcome, failed_outcome  # noqa: E402
 
 
 class ScriptedFuture:
-    """A completed dask future whose status (and result or exception) the test chose."""
+    """A dask future whose status (and result or exception) the test chose; ``pending`` until the
+    scripted client kills its worker, if it is running."""
 
-    def __init__(self, key: str, status: str, result: Any = None, exception: BaseException | None = None) -> None:
+    def __init__(self, key: str, status: str, result: Any = None, exception: BaseException | None = None,
+                 worker: str | None = None) -> None:
         self.key, self.status, self._result, self._exception = key, status, result, exception
+        self.worker = worker
 
     def result(self) -> Any:
         return self._result
@@ -37,7 +42,7 @@ class ScriptedFuture:
         return self._exception
 
     def done(self) -> bool:
-        return True
+        return self.status != "pending"
 
     def release(self) -> None:
         pass
@@ -46,16 +51,26 @@ class ScriptedFuture:
         pass
 
 
+def killed_on(key: str, worker: str) -> Exception:
+    """The exception of a task whose ``worker`` died while running it."""
+    return distributed.KilledWorker(key, SimpleNamespace(address=worker), 0)
+
+
 class ScriptedClient:
     """Enough of ``distributed.Client`` for :func:`dask_executor.dask_outcomes`: each submission of a
     pair takes the next fate from ``fates[pair_id]`` (default: finished), and every submission is
-    recorded as (pair_id, seed)."""
+    recorded as (pair_id, seed). Fates: ``finished``; ``lost``; ``killed:<worker>`` (its worker died
+    while running it); ``running:<worker>`` (starts on the worker and runs until gctr restarts that
+    worker, then fails as killed there). Restarted workers are recorded in ``restarted``."""
 
     status = "running"
 
     def __init__(self, fates: dict[str, list[str]]) -> None:
         self.fates = {k: list(v) for k, v in fates.items()}
         self.submissions: list[tuple[str, int]] = []
+        self.restarted: list[str] = []
+        self.running: list[ScriptedFuture] = []
+        self.on_start: Any = None
 
     def submit(self, fn: Any, spec: PairSpec, seed: int, *args: Any, key: str, **kw: Any) -> ScriptedFuture:
         del fn, args, kw
@@ -67,10 +82,23 @@ class ScriptedClient:
             return ScriptedFuture(key, "finished", result=ran)
         if fate == "lost":
             return ScriptedFuture(key, "lost")
-        # "killed:<worker>": the task's worker died while running it
-        worker = fate.split(":", 1)[1]
-        killed = distributed.KilledWorker(key, SimpleNamespace(address=worker), 0)
-        return ScriptedFuture(key, "error", exception=killed)
+        kind, worker = fate.split(":", 1)
+        if kind == "killed":
+            return ScriptedFuture(key, "error", exception=killed_on(key, worker))
+        future = ScriptedFuture(key, "pending", worker=worker)  # "running:<worker>"
+        self.running.append(future)
+        self.on_start((None, {"key": key, "worker": worker}))  # as run_task announces its start
+        return future
+
+    def restart_workers(self, workers: list[str], timeout: float, raise_for_error: bool) -> dict[str, str]:
+        """Restart ``workers``: every task still running there fails as killed (the timed-out one
+        was cancelled by gctr first and is no longer waited for)."""
+        del timeout, raise_for_error
+        self.restarted += workers
+        for future in self.running:
+            if future.status == "pending" and future.worker in workers:
+                future._exception, future.status = killed_on(future.key, future.worker), "error"
+        return {w: "OK" for w in workers}
 
     def nthreads(self) -> dict[str, int]:
         return {"tcp://w1": 1}
@@ -78,8 +106,9 @@ class ScriptedClient:
     def as_current(self) -> contextlib.AbstractContextManager:
         return contextlib.nullcontext()
 
-    def subscribe_topic(self, *a: Any) -> None:
-        pass
+    def subscribe_topic(self, topic: str, handler: Any) -> None:
+        del topic
+        self.on_start = handler
 
     def unsubscribe_topic(self, *a: Any) -> None:
         pass
@@ -91,14 +120,24 @@ class ScriptedClient:
         pass
 
 
-def run(monkeypatch: pytest.MonkeyPatch, fates: dict[str, list[str]]) -> tuple[dict[str, PairOutcome], ScriptedClient]:
+def wait_for_done(futures: list[ScriptedFuture], timeout: float, return_when: str) -> tuple[set, set]:
+    """``distributed.wait`` over scripted futures: the done ones, after a short pause if none is."""
+    del return_when
+    done = {f for f in futures if f.done()}
+    if not done:
+        time.sleep(min(timeout, 0.005))
+    return done, set(futures) - done
+
+
+def run(monkeypatch: pytest.MonkeyPatch, fates: dict[str, list[str]],
+        time_limit_s: float = 600.0) -> tuple[dict[str, PairOutcome], ScriptedClient]:
     """The outcomes of pairs ``a``, ``b`` (seeds 11, 12) under the scripted ``fates``."""
     client = ScriptedClient(fates)
     monkeypatch.setattr(dask_executor, "_connect", lambda scheduler, n: (client, None))
-    monkeypatch.setattr(distributed, "wait", lambda futures, timeout, return_when: (set(futures), set()))
+    monkeypatch.setattr(distributed, "wait", wait_for_done)
     specs = [PairSpec(pid, Path(f"{pid}_src.ply"), Path(f"{pid}_tgt.ply")) for pid in ("a", "b")]
     config = config_from_dict({}, "<test>")
-    outcomes = dask_executor.dask_outcomes([(specs[0], 11), (specs[1], 12)], config, 1, None, 600.0,
+    outcomes = dask_executor.dask_outcomes([(specs[0], 11), (specs[1], 12)], config, 1, None, time_limit_s,
                                            scheduler="tcp://scripted:8786")
     return {o.pair_id: o for o in outcomes}, client
 
@@ -124,3 +163,23 @@ def test_a_pair_that_kills_its_own_worker_is_not_resubmitted(monkeypatch):
     assert client.submissions == [("a", 11), ("b", 12)]
     assert out["a"].status == "failed" and out["a"].failure == "worker"
     assert "worker died" in out["a"].message and "tcp://w1" in out["a"].message
+
+
+def test_a_pair_on_a_worker_replaced_after_another_pairs_time_out_is_resubmitted(monkeypatch):
+    # a hangs on w1 past the time limit; gctr restarts w1 (external cluster: through its nanny), which
+    # kills b, running there too. b did nothing wrong: it runs again, with its seed.
+    out, client = run(monkeypatch, {"a": ["running:tcp://w1"], "b": ["running:tcp://w1", "finished"]},
+                      time_limit_s=0.05)
+    assert client.restarted == ["tcp://w1"]
+    assert client.submissions == [("a", 11), ("b", 12), ("b", 12)]
+    assert out["a"].status == "failed" and out["a"].failure == "timeout"
+    assert out["a"].message == "timed out after 0.05 s"
+    assert out["b"].message == "ran (submission 3)" and out["b"].seed == 12
+
+
+def test_a_pair_killed_on_a_worker_gctr_did_not_replace_is_not_resubmitted(monkeypatch):
+    # the same time-out on w1, but b dies on w2: its own crash, not gctr's restart
+    out, client = run(monkeypatch, {"a": ["running:tcp://w1"], "b": ["killed:tcp://w2"]}, time_limit_s=0.05)
+    assert client.restarted == ["tcp://w1"]
+    assert client.submissions == [("a", 11), ("b", 12)]
+    assert out["b"].failure == "worker" and "tcp://w2" in out["b"].message
