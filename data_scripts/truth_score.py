@@ -123,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
         rows = list(pool.imap(truth_row, tasks))
+    for row in rows:
+        if row["error"]:  # in the report too; on stderr so that a run's log shows it (as settle_margin)
+            print(f"truth_score: error: {row['pair_id']}: {row['error']}", file=sys.stderr)
     report = render(rows, args.data, config.engine.min_confidence)
     write_tool_outputs(report, rows, args.out, args.csv, CSV_FIELDS)
     return 0

@@ -77,8 +77,9 @@ def test_a_broken_cloud_is_an_error_row_naming_the_file_and_empty_levels_are_ref
     data = easy_bunny_pair_broken
     table = tmp_path / "t.csv"
     assert ts.main(["--data", str(data), "--levels", "easy", "--csv", str(table)]) == 0
-    out = capsys.readouterr().out
-    assert "Pairs that could not be scored:" in out and BROKEN_TARGET in out
+    captured = capsys.readouterr()
+    assert "Pairs that could not be scored:" in captured.out and BROKEN_TARGET in captured.out
+    assert "truth_score: error: " in captured.err and BROKEN_TARGET in captured.err
     with open(table, encoding="utf-8") as fh:
         row = next(csv.DictReader(fh))
     assert row["score"] == "" and BROKEN_TARGET in row["error"]
