@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -207,8 +208,6 @@ BROKEN_TARGET = "easy_bunny_0_tgt.ply"
 @pytest.fixture
 def easy_bunny_pair_broken(easy_bunny_pair, tmp_path) -> Path:
     """A copy of :func:`easy_bunny_pair` whose target (``BROKEN_TARGET``) is a corrupt PLY."""
-    import shutil
-
     data = tmp_path / "data"
     shutil.copytree(easy_bunny_pair, data)
     (data / "easy" / BROKEN_TARGET).write_text("ply\nformat nonsense\n")

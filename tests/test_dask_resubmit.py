@@ -50,6 +50,10 @@ class ScriptedFuture:
     def cancel(self) -> None:
         pass
 
+    def kill(self) -> None:
+        """Its worker died while running it: it fails with ``KilledWorker`` naming that worker."""
+        self._exception, self.status = killed_on(self.key, str(self.worker)), "error"
+
 
 def killed_on(key: str, worker: str) -> Exception:
     """The exception of a task whose ``worker`` died while running it."""
@@ -97,7 +101,7 @@ class ScriptedClient:
         self.restarted += workers
         for future in self.running:
             if future.status == "pending" and future.worker in workers:
-                future._exception, future.status = killed_on(future.key, future.worker), "error"
+                future.kill()
         return {w: "OK" for w in workers}
 
     def nthreads(self) -> dict[str, int]:
