@@ -27,6 +27,15 @@ class ConfigError(ValueError):
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
 
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_for_a_number(cls, value: Any, info: Any) -> Any:
+        """``iterations: true`` is a mistake, not 1: a number field takes no boolean (YAML's true/false,
+        yes/no, on/off), although pydantic would convert it."""
+        if isinstance(value, bool) and cls.model_fields[info.field_name].annotation in (int, float):
+            raise ValueError("expected a number, got a boolean")
+        return value
+
 
 class PreprocessConfig(_Strict):
     """Early downsampling: clouds are reduced to a working size before anything quadratic."""
@@ -368,6 +377,9 @@ def _format_validation_error(err: ValidationError, source: str) -> str:
         path = ".".join(str(p) for p in e["loc"]) or "(top level)"
         if e["type"] == "extra_forbidden":
             lines.append(f"  {path}: unknown key")
+        elif e["type"] == "value_error" and not e["loc"]:
+            # a check across keys: its message names the keys; the input is the whole document
+            lines.append(f"  {e['msg'].removeprefix('Value error, ')}")
         else:
             lines.append(f"  {path}: {e['msg']} (got {e.get('input')!r})")
     return "\n".join(lines)
@@ -395,10 +407,39 @@ def load_config(path: str | Path | None) -> Config:
     import yaml  # here, not at the top: `gctr register` without -c never reads YAML
 
     try:
-        data = yaml.safe_load(p.read_text())
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"config file {p} is not UTF-8 text (bad byte at offset {err.start}); "
+                          "is it a YAML file?") from None
+    except OSError as err:
+        raise ConfigError(f"cannot read config file {p}: {err.strerror or err}") from None
+    try:
+        data = yaml.load(text, Loader=_unique_key_loader())  # a SafeLoader subclass
+    except yaml.MarkedYAMLError as err:
+        where = f" (line {err.problem_mark.line + 1}, column {err.problem_mark.column + 1})" if err.problem_mark else ""
+        raise ConfigError(f"config file {p} is not valid YAML{where}: {err.problem}") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"config file {p} is not valid YAML: {err}") from None
     return config_from_dict(data, str(p))
+
+
+def _unique_key_loader() -> type:
+    """A YAML SafeLoader that rejects a key given twice in one mapping (plain YAML keeps the last one,
+    so a second ``engine:`` section would silently replace the first)."""
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node: Any, deep: bool = False) -> dict:
+            seen: set = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key {key!r} is given twice", key_node.start_mark)
+                seen.add(key)
+            return super().construct_mapping(node, deep=deep)
+
+    return UniqueKeyLoader
 
 
 def config_to_yaml(config: Config) -> str:
