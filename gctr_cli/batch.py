@@ -144,40 +144,73 @@ def run_batch(
     check_executor(executor, scheduler)
     ref = register_ref(register_fn)
     n_workers = resolve_workers(workers, config)
+    existed = outdir.exists()
     try:
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
+    try:
+        with OutdirLock(outdir):
+            before = set(os.listdir(outdir))
+            n_run = 0
+            outputs: Outputs | None = None
+            try:
+                done = prepare_outdir(outdir, config, resume)
+                todo = [p for p in pairs if p.pair_id not in done]
+                n_resumed = len(pairs) - len(todo)
+                resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
+                atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
+                if snapshots:
+                    (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
+                if write_aligned:
+                    (outdir / ALIGNED_DIR).mkdir(exist_ok=True)
+                outputs = Outputs(outdir, write_aligned=write_aligned)
+                if n_resumed:
+                    logger.info("resuming: %d of %d pairs already done", n_resumed, len(pairs))
+                if on_start is not None:
+                    on_start(len(todo), n_resumed)
+                tasks = [(p, derive_seed(config.seed, p.pair_id)) for p in todo]
+                if tasks:
+                    for outcome in outcomes(executor, tasks, config, n_workers, ref, scheduler=scheduler,
+                                            snapshots=snapshots):
+                        outcome = outputs.commit(outcome)
+                        n_run += 1
+                        if on_outcome is not None:
+                            on_outcome(outcome)
+            except BaseException as exc:
+                if n_run == 0:  # nothing recorded: leave the folder as it was (a full disk, no scheduler, ...)
+                    if outputs is not None:
+                        outputs.close()
+                        outputs = None
+                    _undo_setup(outdir, before)
+                    if isinstance(exc, OSError):
+                        problem = exc.strerror or exc_message(exc)
+                        raise BatchError(f"cannot set up output folder {outdir}: {problem}; nothing was run") from None
+                raise
+            finally:
+                if outputs is not None:
+                    outputs.close()
 
-    with OutdirLock(outdir):
-        done = prepare_outdir(outdir, config, resume)
-        todo = [p for p in pairs if p.pair_id not in done]
-        n_resumed = len(pairs) - len(todo)
-        resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
-        atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
-        if snapshots:
-            (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
-        if write_aligned:
-            (outdir / ALIGNED_DIR).mkdir(exist_ok=True)
-        if n_resumed:
-            logger.info("resuming: %d of %d pairs already done", n_resumed, len(pairs))
-        if on_start is not None:
-            on_start(len(todo), n_resumed)
+            summary = summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
+            _write_report(outdir, summary, config)
+            return summary
+    finally:
+        if not existed:
+            try:
+                outdir.rmdir()  # only when the run left nothing in the folder it created
+            except OSError:
+                pass
 
-        tasks = [(p, derive_seed(config.seed, p.pair_id)) for p in todo]
-        outputs = Outputs(outdir, write_aligned=write_aligned)
-        n_run = 0
+
+def _undo_setup(outdir: Path, before: set[str]) -> None:
+    """Remove what a run that recorded no pair added to ``outdir`` (files, and folders while empty),
+    best effort; the lock is left to its owner."""
+    for name in sorted(set(os.listdir(outdir)) - before - {LOCK_NAME}):
+        path = outdir / name
         try:
-            if tasks:
-                for outcome in outcomes(executor, tasks, config, n_workers, ref, scheduler=scheduler,
-                                        snapshots=snapshots):
-                    outcome = outputs.commit(outcome)
-                    n_run += 1
-                    if on_outcome is not None:
-                        on_outcome(outcome)
-        finally:
-            outputs.close()
-
-        summary = summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
-        _write_report(outdir, summary, config)
-        return summary
+            if path.is_dir():
+                path.rmdir()
+            else:
+                path.unlink()
+        except OSError:
+            logger.debug("cannot remove %s", path)

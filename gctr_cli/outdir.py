@@ -12,7 +12,8 @@ Layout (README, "Outputs"): ``transforms.csv`` (one row per pair, the commit log
   ``--resume`` error rows without a committed pair are dropped.
 * **A pair whose outputs cannot be written does not end the batch.** Any exception while committing
   it (a file name the filesystem refuses, a matrix path that is a folder, a full disk, ...) undoes
-  what was written for it and records it as a failed row (failure ``"output"``) naming the problem.
+  what was written for it and records it as a failed row (failure ``"output"``) naming the problem;
+  ``--resume`` runs such pairs again.
   Only when even that row cannot be written does the batch stop (:class:`~gctr_cli.errors.BatchError`).
 """
 
@@ -53,6 +54,8 @@ ALIGNED_DIR = "aligned"
 SNAPSHOTS_DIR = "snapshots"
 REPORT_FILE = "report.html"
 CONFIG_FILE = "config.yaml"
+#: start of the message of a pair whose outputs could not be written; ``--resume`` runs such pairs again
+OUTPUT_FAILURE = "cannot write its outputs: "
 
 
 def csv_line(fields: Iterable[str]) -> str:
@@ -215,7 +218,14 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
     check_same_config(outdir, config)
     truncate_partial_line(transforms)
     truncate_partial_line(errors)
-    done = {r["pair_id"] for r in read_rows(transforms, TRANSFORMS_COLUMNS)}
+    rows = read_rows(transforms, TRANSFORMS_COLUMNS)
+    unwritten = [r for r in rows if r["status"] == "failed" and r["message"].startswith(OUTPUT_FAILURE)]
+    if unwritten:  # the folder's fault (a full disk, ...), not the pair's: run them again
+        logger.info("%s: running again %d pairs whose outputs could not be written", transforms, len(unwritten))
+        rows = [r for r in rows if r not in unwritten]
+        atomic_write(transforms, csv_line(TRANSFORMS_COLUMNS)
+                     + "".join(csv_line(r[c] for c in TRANSFORMS_COLUMNS) for r in rows))
+    done = {r["pair_id"] for r in rows}
     # keep exactly one error row per committed pair (drop rows of pairs killed before their commit)
     err_rows = read_rows(errors, ERRORS_COLUMNS)
     kept: dict[str, dict[str, str]] = {}
@@ -269,7 +279,7 @@ class Outputs:
         except Exception as exc:  # one pair's outputs must never end the batch
             logger.debug("pair %s: cannot write its outputs", outcome.pair_id, exc_info=True)
             failed = failed_outcome(
-                outcome, outcome.seed, f"cannot write its outputs: {_problem(exc)}", "output", outcome.runtime_s,
+                outcome, outcome.seed, f"{OUTPUT_FAILURE}{_problem(exc)}", "output", outcome.runtime_s,
                 fitness=outcome.fitness, inlier_rmse=outcome.inlier_rmse, confidence=outcome.confidence,
             )
             try:

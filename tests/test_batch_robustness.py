@@ -70,13 +70,21 @@ def test_outputs_that_cannot_be_written_give_that_pair_a_failed_row(four_pairs, 
     assert len(rows) == 5 and sum(r["status"] == "ok" for r in rows.values()) == 4
     bad = rows["pcd_xyz"]
     assert bad["status"] == "failed" and bad["m00"] == ""
-    assert bad["message"] == f"cannot write its outputs: {out}/matrices/pcd_xyz.txt: cannot write file (Is a directory)"
+    assert bad["message"] == f"cannot write its outputs: {out}/matrices/pcd_xyz.txt: cannot write file (it is a folder)"
     assert bad["fitness"] == "0.875" and float(bad["confidence"]) > 0.5  # what the engine said is kept
     assert "pcd_xyz" not in by_id(out / "tm_errors.csv")  # no error row for a failed pair
     assert "pcd_xyz: cannot write its outputs" in result.output
-    # and --resume has nothing left to do (the failed row is a result), instead of crashing again
+    # --resume runs that pair again (the folder's fault, not the pair's): still unwritable, failed again
     again = invoke("batch", four_pairs.manifest(), "-o", out, "-q", "--resume")
-    assert again.exit_code == 1 and "(5 done by an earlier run)" in again.output
+    assert again.exit_code == 1 and "(4 done by an earlier run)" in again.output
+    assert by_id(out / "transforms.csv")["pcd_xyz"]["message"] == bad["message"]
+    # once the problem is fixed, --resume completes it
+    (out / "matrices" / "pcd_xyz.txt").rmdir()
+    fixed = invoke("batch", four_pairs.manifest(), "-o", out, "-q", "--resume")
+    assert fixed.exit_code == 0, fixed.output
+    rows = by_id(out / "transforms.csv")
+    assert len(rows) == 5 and all(r["status"] == "ok" for r in rows.values())
+    assert len(read_csv(out / "transforms.csv")[1]) == 5 and "pcd_xyz" in by_id(out / "tm_errors.csv")
 
 
 def test_a_failed_commit_is_undone_before_the_failed_row(four_pairs, fast_config, tmp_path, monkeypatch):
@@ -128,3 +136,26 @@ def test_resuming_a_folder_without_the_confidence_column_says_why(four_pairs, fa
     (out / "transforms.csv").write_text(",".join(old) + "\n" + text[1] + "\n")  # as an earlier gctr wrote it
     with pytest.raises(BatchError, match="earlier gctr \\(no confidence column\\)"):
         run_batch(four_pairs.specs(), fast_config, out, resume=True, register_fn=fake_engine.register)
+
+
+@pytest.mark.parametrize("existed", [False, True])
+def test_a_full_disk_while_setting_up_leaves_the_folder_as_it_was(four_pairs, fast_config, tmp_path, monkeypatch,
+                                                                  existed):
+    def no_space(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(batch, "atomic_write", no_space)  # config.yaml, the first file a run writes
+    out = tmp_path / "out"
+    if existed:
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+    with pytest.raises(BatchError, match=rf"cannot set up output folder {out}: No space left on device; nothing "
+                                         "was run"):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    if existed:
+        assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    else:
+        assert not out.exists()
+    result = invoke("batch", four_pairs.manifest(), "-o", out, "-q")  # the CLI: exit 2, one line
+    assert result.exit_code == 2 and "gctr: error: cannot set up output folder" in result.output
+    assert "Traceback" not in result.output
