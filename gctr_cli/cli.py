@@ -32,9 +32,11 @@ EXIT_CODES_HELP = """\b
 Exit codes:
   0  every pair registered (status ok)
   1  at least one pair failed (see the message column of transforms.csv)
-  2  usage, manifest, config or output-folder error: nothing was run
+  2  usage, manifest, config or output-folder error: nothing was run;
+     or the batch had to stop (the finished pairs are saved: --resume)
   3  --min-success given and the success rate over pairs with ground
-     truth is below it (takes precedence over 1)"""
+     truth is below it (takes precedence over 1)
+  130/143  stopped by Ctrl-C / SIGTERM (finished pairs saved: --resume)"""
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -72,13 +74,21 @@ def _die(message: str, code: int = EXIT_USAGE) -> NoReturn:
     sys.exit(code)
 
 
-def _load_config(path: str | None):
+def _load_config(path: str | None, runs_here: bool = True):
+    """The config at ``path`` (defaults for ``None``), or exit 2 naming the problem. With ``runs_here``
+    the method it selects must also be installed on this machine (not checked for a batch on a Dask
+    cluster, whose workers may have packages this machine lacks)."""
     from gctr_cli.config import ConfigError, load_config
+    from gctr_cli.methods import REGISTRY, is_available
 
     try:
-        return load_config(path)
+        config = load_config(path)
     except ConfigError as exc:
         _die(str(exc))
+    if runs_here and not is_available(config.method):
+        _die(f"{path or 'the default config'}: method {config.method!r} needs the optional package "
+             f"{REGISTRY[config.method].requires!r}, which is not installed here")
+    return config
 
 
 def _single_threaded_native_libs() -> None:
@@ -143,9 +153,24 @@ def run() -> None:
     reading and writing a pair's files; ``register`` and ``apply`` have written, flushed and closed
     their outputs when they return, so the process ends with ``os._exit`` after flushing the streams.
     """
+    code: int | str | None = 0
     try:
-        main(prog_name="gctr")
-        code: int | str | None = 0
+        returned = main(prog_name="gctr", standalone_mode=False)
+        code = returned if isinstance(returned, int) else 0  # --help / --version exit through here
+    except click.UsageError as exc:  # bad option or argument: one line like every other error
+        no_args = getattr(click.exceptions, "NoArgsIsHelpError", ())
+        if isinstance(exc, no_args):  # `gctr` or `gctr config` alone: the help, as click prints it
+            exc.show()
+        else:
+            hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+            click.echo(f"gctr: error: {exc.format_message()}{hint}", err=True)
+        code = exc.exit_code
+    except click.ClickException as exc:
+        click.echo(f"gctr: error: {exc.format_message()}", err=True)
+        code = exc.exit_code
+    except click.exceptions.Abort:  # Ctrl-C outside a batch (the batch handles its own)
+        click.echo("gctr: interrupted", err=True)
+        code = 128 + signal.SIGINT
     except SystemExit as exc:
         code = exc.code
     if not _ONE_SHOT:
@@ -185,6 +210,9 @@ def main(verbose: int) -> None:
       1  registration failed (register) / at least one pair failed (batch)
       2  usage, file, manifest or config error: nothing was run
       3  batch --min-success: success rate below the threshold
+      130/143  stopped by Ctrl-C / SIGTERM
+
+    -v / -vv go before the command: gctr -v batch ...
     """
     _setup_logging(verbose)
 
@@ -219,6 +247,12 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     workers (set OMP_NUM_THREADS etc. to override).
 
     \b
+    Examples:
+      gctr register scan.ply model.pcd -o scan_to_model.txt
+      gctr register scan.laz map.e57 -c my.yaml --aligned scan_in_map.laz
+      gctr register src.ply tgt.ply --gt gt.txt   # also prints the errors against gt.txt
+
+    \b
     Exit codes:
       0  registered (status ok)
       1  registration failed (the message says why)
@@ -229,6 +263,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     from gctr_cli.allocator import keep_freed_memory
 
     keep_freed_memory()  # about 13% off a fresh process's engine time (see gctr_cli.allocator)
+    _check_writable(output)
     if aligned is not None:
         _check_output_cloud(aligned)
     config = _load_config(config_path)
@@ -286,13 +321,24 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
 
 
 def _check_output_cloud(path: Path) -> None:
-    """Exit 2 before any work when ``path`` has no extension gctr can write a cloud to."""
+    """Exit 2 before any work when ``path`` has no extension gctr can write a cloud to, or cannot be
+    written (:func:`_check_writable`)."""
     from gctr_cli.io.registry import WRITE_EXTENSIONS, format_of
 
     fmt = format_of(path)
     if fmt is None or fmt.write is None:
         _die(f"{path}: cannot write a point cloud with extension '{path.suffix}' "
              f"(supported: {', '.join(WRITE_EXTENSIONS)})")
+    _check_writable(path)
+
+
+def _check_writable(path: Path | None) -> None:
+    """Exit 2 before any work when a file cannot be written at ``path`` (a file where a folder should
+    be, a read-only folder, ...): better than finding out after the registration."""
+    from gctr_cli.fsutil import output_problem
+
+    if path is not None and (problem := output_problem(path)) is not None:
+        _die(f"{path}: cannot write file ({problem})")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -328,8 +374,13 @@ def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the 
     _check_output_cloud(output)
     from gctr_cli.io import MatrixError, PointCloudError, read_matrix, write_aligned
 
+    from gctr_cli.metrics import is_similarity
+
     try:
         T = read_matrix(matrix)
+        similarity, reason = is_similarity(T)
+        if not similarity:  # a general affine map is applied as given, but rarely meant
+            logger.warning("%s is not a similarity transform (%s); applying it anyway", matrix, reason)
         moved = write_aligned(input, T, output)
     except (PointCloudError, MatrixError) as exc:
         _die(str(exc))
@@ -411,6 +462,12 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
     gets a failed row and the batch goes on. An interrupted run keeps every finished pair: rerun with
     --resume to finish it. Results do not depend on -j or on the executor.
 
+    \b
+    Examples:
+      gctr batch pairs.csv -c configs/default.yaml -o results/ -j 4
+      gctr batch pairs.csv -o results/ --resume -q --min-success 0.95   # cron / CI
+      gctr batch pairs.csv -o results/ --scheduler tcp://HOST:8786
+
     With --executor dask the input files must be readable by every worker at the same absolute
     paths (a shared filesystem); outputs are written by this process only.
     """
@@ -418,7 +475,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         executor = "dask" if scheduler else "local"
     elif executor == "local" and scheduler:
         _die("--scheduler needs --executor dask")
-    config = _load_config(config_path)
+    config = _load_config(config_path, runs_here=executor == "local")
     from gctr_cli import batch as batch_mod
     from gctr_cli.manifest import ManifestError, read_manifest
 
@@ -506,10 +563,17 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
     with the source mapped by the matrix (same picture as batch --snapshots). Rendering is headless.
 
     \b
+    Example:
+      gctr show scan.ply model.pcd --matrix scan_to_model.txt -o check.png
+
+    \b
     Exit codes:
       0  picture written
       2  usage error, unreadable cloud or matrix, or the PNG cannot be written
     """
+    if output.suffix.lower() != ".png":
+        _die(f"{output}: the picture is written as PNG; give the file the extension .png")
+    _check_writable(output)
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
     from gctr_cli.metrics import is_similarity
     from gctr_cli.snapshots import render_snapshot, write_png
@@ -534,7 +598,9 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
     try:
         write_png(output, png)
     except OSError as exc:
-        _die(f"cannot write {output}: {exc.strerror or exc}")
+        from gctr_cli.fsutil import write_error
+
+        _die(f"{output}: cannot write file ({write_error(output, exc)})")
     click.echo(f"wrote {output}")
 
 
@@ -554,9 +620,14 @@ def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Pa
 
     a.ply in SOURCE_DIR pairs with a.pcd in TARGET_DIR (pair_id "a"); with --gt-dir, GT_DIR/a.txt is
     its ground truth. Stems found on one side only are reported as warnings. Exit 2 on error.
+
+    \b
+    Example:
+      gctr manifest scans/ models/ --gt-dir gt/ -o pairs.csv
     """
     from gctr_cli.manifest import ManifestError, build_manifest, write_manifest
 
+    _check_writable(output)
     try:
         pairs = build_manifest(source_dir, target_dir, gt_dir)
         write_manifest(output, pairs)
@@ -627,15 +698,27 @@ def config_show(file: str | None) -> None:
     """Print the default config (or FILE resolved with defaults) as commented YAML.
 
     Save it, edit what you need, and pass it with -c.
+
+    \b
+    Examples:
+      gctr config show > my.yaml
+      gctr config show my.yaml   # my.yaml with every default filled in
     """
-    config = _load_config(file)
+    config = _load_config(file, runs_here=False)
     click.echo(commented_yaml(config), nl=False)
 
 
 @config_group.command("check")
 @click.argument("file", type=click.Path(dir_okay=False))
 def config_check(file: str) -> None:
-    """Validate FILE: exit 0 and print "ok", or exit 2 naming each bad key and the expected type."""
+    """Validate FILE: exit 0 and print "ok", or exit 2 naming each bad key and the expected type.
+
+    Also checks that the method FILE selects is installed here.
+
+    \b
+    Example:
+      gctr config check my.yaml
+    """
     _load_config(file)
     click.echo(f"ok: {file}")
 

@@ -22,6 +22,38 @@ THREAD_ENV_VARS = (
 )
 
 
+def output_problem(path: str | Path) -> str | None:
+    """Why a file cannot be written at ``path`` (``None`` if it can, as far as can be told without
+    writing it): a folder in its place, a file where a parent folder should be, or a parent folder in
+    which no file can be created (tested by creating and removing a temporary file there; folders
+    that do not exist yet are not created)."""
+    path = Path(path)
+    if path.is_dir():
+        return "it is a folder"
+    for parent in path.absolute().parents:
+        if not parent.exists():
+            continue
+        if not parent.is_dir():
+            return f"{parent} is a file, not a folder"
+        probe = parent / f".gctr-probe-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        try:
+            os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        except OSError as exc:
+            return f"cannot create files in {parent} ({exc.strerror or exc})"
+        try:
+            os.unlink(probe)
+        except OSError:
+            pass
+        return None
+    return None
+
+
+def write_error(path: str | Path, exc: OSError) -> str:
+    """The message of a failed write to ``path``: the problem :func:`output_problem` finds (clearer than
+    the operating system's "File exists" for a parent that is a file), else the system's error."""
+    return output_problem(path) or exc.strerror or "operating system error"
+
+
 @contextmanager
 def single_thread_env() -> Iterator[None]:
     """Set every :data:`THREAD_ENV_VARS` to 1 for the ``with`` block, then restore them: a process spawned

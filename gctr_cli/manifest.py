@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from gctr_cli.fsutil import atomic_write
+from gctr_cli.fsutil import atomic_write, write_error
 from gctr_cli.io import SUPPORTED_EXTENSIONS
 
 __all__ = ["ManifestError", "PairSpec", "build_manifest", "read_manifest", "write_manifest"]
@@ -229,7 +229,7 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
     try:
         atomic_write(path, buf.getvalue())
     except OSError as exc:
-        raise ManifestError(f"{path}: cannot write manifest ({exc.strerror or exc})") from exc
+        raise ManifestError(f"{path}: cannot write manifest ({write_error(path, exc)})") from exc
 
 
 def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:

@@ -134,6 +134,9 @@ def test_config_show_file_and_check(runner, tmp_path):
         ("success:\n  rotation_deg: -1\n", ["success.rotation_deg", "greater than 0"]),
         ("seed: [1, 2\n", ["not valid YAML"]),
         ("- just\n- a list\n", ["top level must be a mapping"]),
+        ("engine:\n  seed: 1\nengine:\n  seed: 2\n", ["(line 3, column 1): key 'engine' is given twice"]),
+        ("engine:\n  refine:\n    end_ratio: 0.9\n", ["engine.refine.end_ratio must not exceed"]),
+        ("engine:\n  refine:\n    iterations: true\n", ["engine.refine.iterations", "expected a number, got a boolean"]),
     ],
 )
 def test_config_errors_exit_2_naming_the_key(runner, tmp_path, text, expected):
@@ -148,6 +151,37 @@ def test_config_errors_exit_2_naming_the_key(runner, tmp_path, text, expected):
     res = invoke(runner, "batch", tmp_path / "pairs.csv", "-c", bad, "-o", tmp_path / "out")
     assert res.exit_code == 2 and expected[0] in res.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_config_that_is_not_text_exits_2_without_a_traceback(tmp_path):
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes("seed: 3  # caf\u00e9\n".encode("latin-1"))
+    out = gctr("config", "check", latin)
+    assert out.returncode == 2
+    assert out.stderr.strip() == (f"gctr: error: config file {latin} is not UTF-8 text (bad byte at offset 14); "
+                                  "is it a YAML file?")
+
+
+def test_a_method_that_is_not_installed_is_a_config_error(runner, tmp_path, monkeypatch):
+    import gctr_cli.methods
+
+    monkeypatch.setattr(gctr_cli.methods, "is_available", lambda method: method != "kiss_matcher")
+    cfg = tmp_path / "kiss.yaml"
+    cfg.write_text("method: kiss_matcher\n")
+    res = invoke(runner, "config", "check", cfg)
+    assert res.exit_code == 2
+    assert f"{cfg}: method 'kiss_matcher' needs the optional package 'kiss_matcher'" in res.stderr
+    (tmp_path / "pairs.csv").write_text("pair_id,source,target\na,a.ply,b.ply\n")
+    res = invoke(runner, "batch", tmp_path / "pairs.csv", "-c", cfg, "-o", tmp_path / "out")
+    assert res.exit_code == 2 and not (tmp_path / "out").exists()
+    assert invoke(runner, "config", "show", cfg).exit_code == 0  # showing it is fine
+
+
+def test_usage_errors_are_one_line_like_every_other_error(tmp_path):
+    out = gctr("register", tmp_path / "a.ply")
+    assert out.returncode == 2
+    assert out.stderr.strip() == "gctr: error: Missing argument 'TARGET'. (see 'gctr register --help')"
+    assert gctr("--version").returncode == 0
 
 
 def test_config_check_missing_file_via_subprocess(tmp_path):
@@ -226,6 +260,32 @@ def test_register_exit_codes(runner, fake_register, dataset, tmp_path):
     (tmp_path / "bad.yaml").write_text("engine: {nope: 1}\n")
     res = invoke(runner, "register", src, tgt, "-c", tmp_path / "bad.yaml")
     assert res.exit_code == 2 and "engine.nope: unknown key" in res.stderr
+
+
+def test_outputs_that_cannot_be_written_are_refused_before_any_work(runner, fake_register, four_pairs, tmp_path,
+                                                                     monkeypatch):
+    import gctr_cli.engine
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("registered although the output cannot be written")
+
+    monkeypatch.setattr(gctr_cli.engine, "register", must_not_run)
+    row = four_pairs.rows[0]
+    src, tgt = four_pairs.root / row["source"], four_pairs.root / row["target"]
+    (tmp_path / "afile").write_text("")
+    under_file = f"cannot write file ({tmp_path}/afile is a file, not a folder)"
+    for args in (("-o", tmp_path / "afile" / "m.txt"), ("--aligned", tmp_path / "afile" / "a.ply")):
+        res = invoke(runner, "register", src, tgt, *args)
+        assert res.exit_code == 2 and f"{args[1]}: {under_file}" in res.stderr, args
+        assert "status" not in res.stdout
+    res = invoke(runner, "apply", tmp_path / "nope.txt", src, "-o", tmp_path / "afile" / "out.ply")
+    assert res.exit_code == 2 and under_file in res.stderr
+    res = invoke(runner, "show", src, tgt, "-o", tmp_path / "afile" / "v.png")
+    assert res.exit_code == 2 and under_file in res.stderr
+    res = invoke(runner, "show", src, tgt, "-o", tmp_path / "v.jpg")
+    assert res.exit_code == 2 and "the picture is written as PNG" in res.stderr
+    res = invoke(runner, "manifest", four_pairs.root, four_pairs.root, "-o", tmp_path / "afile" / "p.csv")
+    assert res.exit_code == 2 and under_file in res.stderr
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -26,3 +26,21 @@ def test_relative_links_resolve(doc):
         if not (doc.parent / path).exists():
             broken.append(target)
     assert not broken, f"{doc.name}: broken links {broken}"
+
+
+def test_readme_python_example_prints_what_the_readme_shows():
+    """The README's Python API example, run as shown, prints the output the README shows (but the
+    run time): the numbers a reader compares against must be the engine's."""
+    import subprocess
+    import sys
+
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    shown = re.search(r"Output \(run from the repository root\):\n\n```text\n(.*?)```", text, re.S).group(1)
+    run = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120,
+                         check=True)
+
+    def without_runtime(out: str) -> list[str]:
+        return [re.sub(r"runtime_s=[0-9.]+", "runtime_s=…", line) for line in out.strip().splitlines()]
+
+    assert without_runtime(run.stdout) == without_runtime(shown)

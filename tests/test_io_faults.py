@@ -224,6 +224,11 @@ def test_links_to_unreadable_things_say_what_they_point_to(tmp_path, kind, keywo
     load_error(link, *keywords)
 
 
+def test_a_folder_without_an_extension_is_named_a_folder(tmp_path):
+    (tmp_path / "scans").mkdir()
+    load_error(tmp_path / "scans", "is a folder, not a point cloud file")
+
+
 def test_batch_with_a_symlink_loop_runs_every_pair_and_names_the_link(tmp_path):
     from gctr_cli.batch import run_batch
     from gctr_cli.manifest import read_manifest

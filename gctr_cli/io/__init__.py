@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.fsutil import atomic_write
+from gctr_cli.fsutil import atomic_write, write_error
 from gctr_cli.io.cloud import COLLINEAR_RTOL, PointCloud, transform_cloud, validate_cloud
 from gctr_cli.io.errors import MatrixError, PointCloudError
 from gctr_cli.io.matrix import format_matrix, read_matrix, write_matrix
@@ -84,6 +84,8 @@ def read_point_cloud(path: str | Path, *, min_points: int = 10, attributes: bool
     path = Path(path)
     fmt = format_of(path)
     if fmt is None:
+        if path.is_dir():
+            raise PointCloudError(f"{path}: is a folder, not a point cloud file")
         raise PointCloudError(
             f"{path}: unsupported extension '{path.suffix}' (supported: {', '.join(SUPPORTED_EXTENSIONS)})"
         )
@@ -148,7 +150,7 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     try:
         atomic_write(path, data)
     except OSError as exc:
-        raise PointCloudError(f"{path}: cannot write file ({exc.strerror or 'operating system error'})") from None
+        raise PointCloudError(f"{path}: cannot write file ({write_error(path, exc)})") from None
 
 
 def save_point_cloud(path: str | Path, points: np.ndarray, *, binary: bool = True) -> None:

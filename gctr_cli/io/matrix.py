@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.fsutil import atomic_write
+from gctr_cli.fsutil import atomic_write, write_error
 from gctr_cli.io.errors import MatrixError, quote
 from gctr_cli.io.paths import check_input_file
 
@@ -72,7 +72,7 @@ def write_matrix(path: str | Path, T: np.ndarray) -> None:
     try:
         atomic_write(path, format_matrix(M).encode("ascii"))
     except OSError as exc:
-        raise MatrixError(f"{path}: cannot write file ({exc.strerror or 'operating system error'})") from None
+        raise MatrixError(f"{path}: cannot write file ({write_error(path, exc)})") from None
 
 
 def format_matrix(T: np.ndarray) -> str:
