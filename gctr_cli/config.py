@@ -9,6 +9,7 @@ Load with :func:`load_config`; an unknown key or a value of the wrong type raise
 
 from __future__ import annotations
 
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
@@ -30,11 +31,20 @@ class _Strict(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_boolean_for_a_number(cls, value: Any, info: Any) -> Any:
-        """``iterations: true`` is a mistake, not 1: a number field takes no boolean (YAML's true/false,
-        yes/no, on/off), although pydantic would convert it."""
-        if isinstance(value, bool) and cls.model_fields[info.field_name].annotation in (int, float):
+        """``iterations: true`` is a mistake, not 1: where a field takes numbers, a boolean (YAML's
+        true/false, yes/no, on/off) is refused, alone or in a list, although pydantic would convert it."""
+        annotation = cls.model_fields[info.field_name].annotation
+        values = value if isinstance(value, (list, tuple)) and typing.get_origin(annotation) is tuple else [value]
+        if any(isinstance(v, bool) for v in values) and _takes_numbers(annotation):
             raise ValueError("expected a number, got a boolean")
         return value
+
+
+def _takes_numbers(annotation: Any) -> bool:
+    """Whether a field annotation accepts int or float (alone, in a union, or as tuple items)."""
+    if annotation in (int, float):
+        return True
+    return any(_takes_numbers(arg) for arg in typing.get_args(annotation) if arg is not Ellipsis)
 
 
 class PreprocessConfig(_Strict):
@@ -377,9 +387,10 @@ def _format_validation_error(err: ValidationError, source: str) -> str:
         path = ".".join(str(p) for p in e["loc"]) or "(top level)"
         if e["type"] == "extra_forbidden":
             lines.append(f"  {path}: unknown key")
-        elif e["type"] == "value_error" and not e["loc"]:
-            # a check across keys: its message names the keys; the input is the whole document
-            lines.append(f"  {e['msg'].removeprefix('Value error, ')}")
+        elif e["type"] == "value_error" and isinstance(e.get("input"), dict):
+            # a check across the keys of a section: its message names them; the input is the whole section
+            message = e["msg"].removeprefix("Value error, ")
+            lines.append(f"  {message}" if not e["loc"] else f"  {path}: {message}")
         else:
             lines.append(f"  {path}: {e['msg']} (got {e.get('input')!r})")
     return "\n".join(lines)
@@ -431,7 +442,9 @@ def _unique_key_loader() -> type:
     class UniqueKeyLoader(yaml.SafeLoader):
         def construct_mapping(self, node: Any, deep: bool = False) -> dict:
             seen: set = set()
-            for key_node, _ in node.value:
+            for key_node, _ in node.value:  # the mapping's own keys: merged ones (<<) may be overridden
+                if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
                 key = self.construct_object(key_node, deep=deep)
                 if key in seen:
                     raise yaml.constructor.ConstructorError(

@@ -136,7 +136,10 @@ def test_config_show_file_and_check(runner, tmp_path):
         ("- just\n- a list\n", ["top level must be a mapping"]),
         ("engine:\n  seed: 1\nengine:\n  seed: 2\n", ["(line 3, column 1): key 'engine' is given twice"]),
         ("engine:\n  refine:\n    end_ratio: 0.9\n", ["engine.refine.end_ratio must not exceed"]),
-        ("engine:\n  refine:\n    iterations: true\n", ["engine.refine.iterations", "expected a number, got a boolean"]),
+        ("engine:\n  refine:\n    iterations: on\n", ["engine.refine.iterations", "expected a number, got a boolean"]),
+        ("engine:\n  scale_bounds: [true, 5]\n", ["engine.scale_bounds", "expected a number, got a boolean"]),
+        ("baselines: {kiss_matcher: {solver_noise_bound_gain: 2}}\n",
+         ["baselines.kiss_matcher: solver_noise_bound_gain must not exceed robin_noise_bound_gain"]),
     ],
 )
 def test_config_errors_exit_2_naming_the_key(runner, tmp_path, text, expected):
@@ -146,11 +149,21 @@ def test_config_errors_exit_2_naming_the_key(runner, tmp_path, text, expected):
     assert res.exit_code == 2
     for piece in expected:
         assert piece in res.stderr
+    assert "(got {" not in res.stderr  # a check across keys names them, not the whole section
     # the same error stops a batch before anything runs
     (tmp_path / "pairs.csv").write_text("pair_id,source,target\na,a.ply,b.ply\n")
     res = invoke(runner, "batch", tmp_path / "pairs.csv", "-c", bad, "-o", tmp_path / "out")
     assert res.exit_code == 2 and expected[0] in res.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_yaml_merge_keys_may_be_overridden(runner, tmp_path):
+    cfg = tmp_path / "merge.yaml"
+    cfg.write_text("engine:\n  power_iteration:\n    <<: {iterations: 10}\n"
+                   "    iterations: 12\n")
+    res = invoke(runner, "config", "show", cfg)
+    assert res.exit_code == 0, res.stderr
+    assert yaml.safe_load(res.output)["engine"]["power_iteration"]["iterations"] == 12
 
 
 def test_a_config_that_is_not_text_exits_2_without_a_traceback(tmp_path):
