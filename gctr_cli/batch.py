@@ -45,7 +45,15 @@ from gctr_cli.fsutil import THREAD_ENV_VARS, atomic_write
 from gctr_cli.lock import LOCK_NAME, OutdirLock
 from gctr_cli.manifest import pair_ids_problem
 from gctr_cli.outcome import ERRORS_COLUMNS, MATRIX_COLUMNS, TRANSFORMS_COLUMNS, PairOutcome, exc_message
-from gctr_cli.outdir import ALIGNED_DIR, CONFIG_FILE, REPORT_FILE, SNAPSHOTS_DIR, Outputs, prepare_outdir
+from gctr_cli.outdir import (
+    ALIGNED_DIR,
+    CONFIG_FILE,
+    REPORT_FILE,
+    SNAPSHOTS_DIR,
+    TRANSFORMS_FILE,
+    Outputs,
+    prepare_outdir,
+)
 from gctr_cli.pair import RegisterFn, derive_seed, run_pair
 from gctr_cli.summary import BatchSummary, summarize
 
@@ -144,67 +152,103 @@ def run_batch(
     check_executor(executor, scheduler)
     ref = register_ref(register_fn)
     n_workers = resolve_workers(workers, config)
-    existed = outdir.exists()
+    first_created = _first_missing(outdir)
     try:
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
     try:
-        with OutdirLock(outdir):
-            before = set(os.listdir(outdir))
-            n_run = 0
-            outputs: Outputs | None = None
-            try:
-                done = prepare_outdir(outdir, config, resume)
-                todo = [p for p in pairs if p.pair_id not in done]
-                n_resumed = len(pairs) - len(todo)
-                resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
-                atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
-                if snapshots:
-                    (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
-                if write_aligned:
-                    (outdir / ALIGNED_DIR).mkdir(exist_ok=True)
-                outputs = Outputs(outdir, write_aligned=write_aligned)
-                if n_resumed:
-                    logger.info("resuming: %d of %d pairs already done", n_resumed, len(pairs))
-                if on_start is not None:
-                    on_start(len(todo), n_resumed)
-                tasks = [(p, derive_seed(config.seed, p.pair_id)) for p in todo]
-                if tasks:
-                    for outcome in outcomes(executor, tasks, config, n_workers, ref, scheduler=scheduler,
-                                            snapshots=snapshots):
-                        outcome = outputs.commit(outcome)
-                        n_run += 1
-                        if on_outcome is not None:
-                            on_outcome(outcome)
-            except BaseException as exc:
-                if n_run == 0:  # nothing recorded: leave the folder as it was (a full disk, no scheduler, ...)
-                    if outputs is not None:
-                        outputs.close()
-                        outputs = None
-                    _undo_setup(outdir, before)
-                    if isinstance(exc, OSError):
-                        problem = exc.strerror or exc_message(exc)
-                        raise BatchError(f"cannot set up output folder {outdir}: {problem}; nothing was run") from None
-                raise
-            finally:
-                if outputs is not None:
-                    outputs.close()
-
-            summary = summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
-            _write_report(outdir, summary, config)
-            return summary
+        lock = OutdirLock(outdir)
+        try:
+            lock.acquire()
+        except OSError as exc:  # LockError (another batch) is not an OSError
+            raise BatchError(f"cannot set up output folder {outdir}: {exc.strerror or exc_message(exc)}; nothing "
+                             "was run") from exc
+        try:
+            return _run_locked(pairs, config, outdir, resume, n_workers, ref, executor, scheduler, snapshots,
+                               write_aligned, on_start, on_outcome, t0)
+        finally:
+            lock.release()
     finally:
-        if not existed:
-            try:
-                outdir.rmdir()  # only when the run left nothing in the folder it created
-            except OSError:
-                pass
+        if first_created is not None:  # the folders this run created, if it left nothing in them
+            for folder in (outdir, *outdir.parents):
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
+                if folder == first_created:
+                    break
 
 
-def _undo_setup(outdir: Path, before: set[str]) -> None:
-    """Remove what a run that recorded no pair added to ``outdir`` (files, and folders while empty),
-    best effort; the lock is left to its owner."""
+def _first_missing(outdir: Path) -> Path | None:
+    """The outermost folder of ``outdir``'s path that does not exist yet (``None``: ``outdir`` exists)."""
+    if outdir.exists():
+        return None
+    missing = outdir
+    while not missing.parent.exists() and missing.parent != missing:
+        missing = missing.parent
+    return missing
+
+
+def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool, n_workers: int, ref: Any,
+                executor: str, scheduler: str | None, snapshots: bool, write_aligned: bool,
+                on_start: Callable[[int, int], None] | None, on_outcome: Callable[[PairOutcome], None] | None,
+                t0: float) -> BatchSummary:
+    """:func:`run_batch` in its locked output folder. A run that stops before ``transforms.csv`` has a
+    new row (a full disk while setting up, an executor that cannot start, Ctrl-C) leaves the folder as
+    it was: what it created is removed and a ``transforms.csv`` it rewrote (``--resume``) is restored."""
+    before = set(os.listdir(outdir))
+    transforms = outdir / TRANSFORMS_FILE
+    original = transforms.read_bytes() if resume and transforms.is_file() else None
+    n_run = 0
+    outputs: Outputs | None = None
+    setting_up = True
+    try:
+        done = prepare_outdir(outdir, config, resume)
+        todo = [p for p in pairs if p.pair_id not in done]
+        n_resumed = len(pairs) - len(todo)
+        resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
+        atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
+        if snapshots:
+            (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
+        if write_aligned:
+            (outdir / ALIGNED_DIR).mkdir(exist_ok=True)
+        outputs = Outputs(outdir, write_aligned=write_aligned)
+        setting_up = False
+        if n_resumed:
+            logger.info("resuming: %d of %d pairs already done", n_resumed, len(pairs))
+        if on_start is not None:
+            on_start(len(todo), n_resumed)
+        tasks = [(p, derive_seed(config.seed, p.pair_id)) for p in todo]
+        if tasks:
+            for outcome in outcomes(executor, tasks, config, n_workers, ref, scheduler=scheduler,
+                                    snapshots=snapshots):
+                outcome = outputs.commit(outcome)
+                n_run += 1
+                if on_outcome is not None:
+                    on_outcome(outcome)
+    except BaseException as exc:
+        if outputs is None or not outputs.has_new_rows():
+            if outputs is not None:
+                outputs.close()
+                outputs = None
+            _undo_setup(outdir, before, original)
+            if setting_up and isinstance(exc, OSError):
+                problem = exc.strerror or exc_message(exc)
+                raise BatchError(f"cannot set up output folder {outdir}: {problem}; nothing was run") from exc
+        raise
+    finally:
+        if outputs is not None:
+            outputs.close()
+    summary = summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
+    _write_report(outdir, summary, config)
+    return summary
+
+
+def _undo_setup(outdir: Path, before: set[str], transforms: bytes | None) -> None:
+    """Remove what a run that recorded no pair added to ``outdir`` (files, and folders while empty) and
+    put back the ``transforms.csv`` it started from (``transforms``; ``None``: there was none to keep);
+    best effort. The lock is left to its owner."""
     for name in sorted(set(os.listdir(outdir)) - before - {LOCK_NAME}):
         path = outdir / name
         try:
@@ -214,3 +258,9 @@ def _undo_setup(outdir: Path, before: set[str]) -> None:
                 path.unlink()
         except OSError:
             logger.debug("cannot remove %s", path)
+    path = outdir / TRANSFORMS_FILE
+    try:
+        if transforms is not None and (not path.is_file() or path.read_bytes() != transforms):
+            atomic_write(path, transforms)
+    except OSError:
+        logger.warning("%s: could not restore the rows of the earlier run", path)

@@ -373,7 +373,6 @@ def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the 
     _mark_one_shot()
     _check_output_cloud(output)
     from gctr_cli.io import MatrixError, PointCloudError, read_matrix, write_aligned
-
     from gctr_cli.metrics import is_similarity
 
     try:
@@ -475,7 +474,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         executor = "dask" if scheduler else "local"
     elif executor == "local" and scheduler:
         _die("--scheduler needs --executor dask")
-    config = _load_config(config_path, runs_here=executor == "local")
+    config = _load_config(config_path, runs_here=scheduler is None)  # a LocalCluster runs here too
     from gctr_cli import batch as batch_mod
     from gctr_cli.manifest import ManifestError, read_manifest
 
@@ -525,7 +524,11 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
     except KeyboardInterrupt as exc:
         if bar is not None:
             bar.close()
-        click.echo(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish", err=True)
+        if (outdir / "transforms.csv").is_file():
+            click.echo(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish",
+                       err=True)
+        else:  # stopped before the first pair was recorded: the run removed what it had created
+            click.echo("gctr: interrupted before the first pair finished; nothing was written", err=True)
         sys.exit(128 + (signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT))
     finally:
         if bar is not None:

@@ -27,7 +27,13 @@ def output_problem(path: str | Path) -> str | None:
     writing it): a folder in its place, a file where a parent folder should be, or a parent folder in
     which no file can be created (tested by creating and removing a temporary file there; folders
     that do not exist yet are not created)."""
-    path = Path(path)
+    try:
+        return _output_problem(Path(path))
+    except OSError as exc:  # a name too long, a folder that cannot be entered, ...
+        return exc.strerror or str(exc)
+
+
+def _output_problem(path: Path) -> str | None:
     if path.is_dir():
         return "it is a folder"
     for parent in path.absolute().parents:

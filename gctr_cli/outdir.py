@@ -261,12 +261,20 @@ class Outputs:
         self.outdir = outdir
         self.write_aligned = write_aligned
         self.transforms = RowLog(outdir / TRANSFORMS_FILE, TRANSFORMS_COLUMNS)
+        self.rows_start = self.transforms.size()  # after the header, or after the rows of an earlier run
         try:
             self.errors = RowLog(outdir / ERRORS_FILE, ERRORS_COLUMNS)
         except BaseException:
             self.transforms.close()
             raise
         fsync_dir(outdir)
+
+    def has_new_rows(self) -> bool:
+        """Whether a pair has been recorded (its ``transforms.csv`` row written) since the files were opened."""
+        try:
+            return self.transforms.size() > self.rows_start
+        except OSError:
+            return True  # cannot tell: keep everything
 
     def commit(self, outcome: PairOutcome) -> PairOutcome:
         """Write the pair's files and rows; return the outcome as recorded (a failed ``"output"``

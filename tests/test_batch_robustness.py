@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import os
 
 import pytest
 from click.testing import CliRunner
@@ -159,3 +160,58 @@ def test_a_full_disk_while_setting_up_leaves_the_folder_as_it_was(four_pairs, fa
     result = invoke("batch", four_pairs.manifest(), "-o", out, "-q")  # the CLI: exit 2, one line
     assert result.exit_code == 2 and "gctr: error: cannot set up output folder" in result.output
     assert "Traceback" not in result.output
+
+
+def test_a_stop_right_after_the_first_row_keeps_that_pair(four_pairs, fast_config, tmp_path, monkeypatch):
+    """Ctrl-C landing after the first transforms.csv row is written (before the runner counts it): the
+    pair is recorded, so nothing is undone."""
+    real_append = outdir.RowLog.append
+
+    def append(self, fields):
+        fields = list(fields)
+        real_append(self, fields)
+        if self.path.name == "transforms.csv" and fields[0] != "pair_id":
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(outdir.RowLog, "append", append)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    rows = by_id(out / "transforms.csv")
+    assert len(rows) == 1
+    (pair_id,) = rows
+    assert (out / "matrices" / f"{pair_id}.txt").is_file() and (out / "config.yaml").is_file()
+
+
+def test_a_resume_stopped_before_its_first_pair_keeps_the_rows_it_would_rerun(four_pairs, fast_config, tmp_path,
+                                                                              monkeypatch):
+    out = tmp_path / "out"
+    (out / "matrices" / "pcd_xyz.txt").mkdir(parents=True)  # that pair's outputs cannot be written
+    run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    before = (out / "transforms.csv").read_bytes()
+    assert b"cannot write its outputs" in before
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(batch, "outcomes", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register, resume=True)
+    assert (out / "transforms.csv").read_bytes() == before
+
+
+def test_a_full_disk_for_the_lock_is_a_setup_error_and_leaves_nothing(four_pairs, fast_config, tmp_path, monkeypatch):
+    from gctr_cli import lock
+
+    real_write = lock.os.write
+
+    def write(fd, data):
+        if os.readlink(f"/proc/self/fd/{fd}").endswith(".gctr.lock"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(lock.os, "write", write)
+    out = tmp_path / "new" / "deeper" / "out"
+    with pytest.raises(BatchError, match=r"cannot set up output folder .*: No space left on device; nothing was run"):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    assert not (tmp_path / "new").exists()  # every folder the run created is gone again

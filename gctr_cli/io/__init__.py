@@ -33,6 +33,7 @@ dropped with a warning; too few points, all-identical points and collinear point
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -84,7 +85,7 @@ def read_point_cloud(path: str | Path, *, min_points: int = 10, attributes: bool
     path = Path(path)
     fmt = format_of(path)
     if fmt is None:
-        if path.is_dir():
+        if os.path.isdir(path):  # (False, not an exception, for a name the system refuses)
             raise PointCloudError(f"{path}: is a folder, not a point cloud file")
         raise PointCloudError(
             f"{path}: unsupported extension '{path.suffix}' (supported: {', '.join(SUPPORTED_EXTENSIONS)})"
