@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -48,6 +49,7 @@ from gctr_cli.outcome import ERRORS_COLUMNS, MATRIX_COLUMNS, TRANSFORMS_COLUMNS,
 from gctr_cli.outdir import (
     ALIGNED_DIR,
     CONFIG_FILE,
+    OUTPUT_NAMES,
     REPORT_FILE,
     SNAPSHOTS_DIR,
     TRANSFORMS_FILE,
@@ -152,8 +154,8 @@ def run_batch(
     check_executor(executor, scheduler)
     ref = register_ref(register_fn)
     n_workers = resolve_workers(workers, config)
-    first_created = _first_missing(outdir)
     try:
+        first_created = _first_missing(outdir)
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
@@ -171,7 +173,8 @@ def run_batch(
             lock.release()
     finally:
         if first_created is not None:  # the folders this run created, if it left nothing in them
-            for folder in (outdir, *outdir.parents):
+            real = Path(os.path.realpath(outdir))
+            for folder in (real, *real.parents):
                 try:
                     folder.rmdir()
                 except OSError:
@@ -181,10 +184,11 @@ def run_batch(
 
 
 def _first_missing(outdir: Path) -> Path | None:
-    """The outermost folder of ``outdir``'s path that does not exist yet (``None``: ``outdir`` exists)."""
-    if outdir.exists():
+    """The outermost folder that creating ``outdir`` will create (``None``: ``outdir`` exists), on its
+    real path (symbolic links and ``..`` resolved, as the system creates it)."""
+    missing = Path(os.path.realpath(outdir))
+    if missing.exists():
         return None
-    missing = outdir
     while not missing.parent.exists() and missing.parent != missing:
         missing = missing.parent
     return missing
@@ -197,14 +201,17 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     """:func:`run_batch` in its locked output folder. A run that stops before ``transforms.csv`` has a
     new row (a full disk while setting up, an executor that cannot start, Ctrl-C) leaves the folder as
     it was: what it created is removed and a ``transforms.csv`` it rewrote (``--resume``) is restored."""
-    before = set(os.listdir(outdir))
-    transforms = outdir / TRANSFORMS_FILE
-    original = transforms.read_bytes() if resume and transforms.is_file() else None
+    before: set[str] | None = None
+    originals: dict[str, bytes] = {}
     n_run = 0
     outputs: Outputs | None = None
     setting_up = True
     try:
-        done = prepare_outdir(outdir, config, resume)
+        before = set(os.listdir(outdir))
+        for name in (TRANSFORMS_FILE, CONFIG_FILE):  # the files setting up may rewrite
+            if (outdir / name).is_file():
+                originals[name] = (outdir / name).read_bytes()
+        done = prepare_outdir(outdir, config, resume, {p.pair_id for p in pairs})
         todo = [p for p in pairs if p.pair_id not in done]
         n_resumed = len(pairs) - len(todo)
         resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
@@ -230,9 +237,13 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     except BaseException as exc:
         if outputs is None or not outputs.has_new_rows():
             if outputs is not None:
-                outputs.close()
+                try:
+                    outputs.close()
+                except OSError:
+                    pass
                 outputs = None
-            _undo_setup(outdir, before, original)
+            if before is not None:
+                _undo_setup(outdir, before, originals)
             if setting_up and isinstance(exc, OSError):
                 problem = exc.strerror or exc_message(exc)
                 raise BatchError(f"cannot set up output folder {outdir}: {problem}; nothing was run") from exc
@@ -245,22 +256,23 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     return summary
 
 
-def _undo_setup(outdir: Path, before: set[str], transforms: bytes | None) -> None:
-    """Remove what a run that recorded no pair added to ``outdir`` (files, and folders while empty) and
-    put back the ``transforms.csv`` it started from (``transforms``; ``None``: there was none to keep);
-    best effort. The lock is left to its owner."""
-    for name in sorted(set(os.listdir(outdir)) - before - {LOCK_NAME}):
+def _undo_setup(outdir: Path, before: set[str], originals: dict[str, bytes]) -> None:
+    """Undo what a run that recorded no pair did to ``outdir``: remove the output files and folders
+    it created (nothing else: a file someone else put there meanwhile stays) and put back the files
+    it rewrote (``originals``, by name); best effort, never raises. The lock is left to its owner."""
+    for name in sorted(OUTPUT_NAMES - before):
         path = outdir / name
         try:
             if path.is_dir():
-                path.rmdir()
-            else:
+                shutil.rmtree(path)  # created by this run: holds only what it wrote for its first pair
+            elif path.exists():
                 path.unlink()
         except OSError:
             logger.debug("cannot remove %s", path)
-    path = outdir / TRANSFORMS_FILE
-    try:
-        if transforms is not None and (not path.is_file() or path.read_bytes() != transforms):
-            atomic_write(path, transforms)
-    except OSError:
-        logger.warning("%s: could not restore the rows of the earlier run", path)
+    for name, content in originals.items():
+        path = outdir / name
+        try:
+            if not path.is_file() or path.read_bytes() != content:
+                atomic_write(path, content)
+        except OSError:
+            logger.warning("%s: could not put back its content from before this run", path)

@@ -391,6 +391,15 @@ def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the 
 # ----------------------------------------------------------------------------------------------------
 
 
+def _has_rows(path: Path) -> bool:
+    """Whether the CSV file ``path`` exists and has a line after its header."""
+    try:
+        with open(path, "rb") as fh:
+            return len(fh.readline()) > 0 and len(fh.readline()) > 0
+    except OSError:
+        return False
+
+
 def _print_summary(summary: Any, config: Any) -> None:
     s = summary
     echo = click.echo
@@ -524,7 +533,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
     except KeyboardInterrupt as exc:
         if bar is not None:
             bar.close()
-        if (outdir / "transforms.csv").is_file():
+        if _has_rows(outdir / "transforms.csv"):
             click.echo(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish",
                        err=True)
         else:  # stopped before the first pair was recorded: the run removed what it had created

@@ -54,6 +54,9 @@ ALIGNED_DIR = "aligned"
 SNAPSHOTS_DIR = "snapshots"
 REPORT_FILE = "report.html"
 CONFIG_FILE = "config.yaml"
+#: every file and folder a batch writes into its output folder
+OUTPUT_NAMES = frozenset({TRANSFORMS_FILE, ERRORS_FILE, MATRICES_DIR, ALIGNED_DIR, SNAPSHOTS_DIR, REPORT_FILE,
+                          CONFIG_FILE})
 #: start of the message of a pair whose outputs could not be written; ``--resume`` runs such pairs again
 OUTPUT_FAILURE = "cannot write its outputs: "
 
@@ -194,8 +197,10 @@ def check_same_config(outdir: Path, config: Config) -> None:
         )
 
 
-def prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
-    """Make the folder consistent for appending; return the pair ids already committed."""
+def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str] | None = None) -> set[str]:
+    """Make the folder consistent for appending; return the pair ids already committed. On ``resume``
+    the rows of pairs whose outputs could not be written are dropped, so that they run again (only of
+    pairs in ``pair_ids``, the batch's, when given: another manifest's rows stay)."""
     transforms = outdir / TRANSFORMS_FILE
     errors = outdir / ERRORS_FILE
     (outdir / MATRICES_DIR).mkdir(exist_ok=True)
@@ -219,7 +224,8 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool) -> set[str]:
     truncate_partial_line(transforms)
     truncate_partial_line(errors)
     rows = read_rows(transforms, TRANSFORMS_COLUMNS)
-    unwritten = [r for r in rows if r["status"] == "failed" and r["message"].startswith(OUTPUT_FAILURE)]
+    unwritten = [r for r in rows if r["status"] == "failed" and r["message"].startswith(OUTPUT_FAILURE)
+                 and (pair_ids is None or r["pair_id"] in pair_ids)]
     if unwritten:  # the folder's fault (a full disk, ...), not the pair's: run them again
         logger.info("%s: running again %d pairs whose outputs could not be written", transforms, len(unwritten))
         rows = [r for r in rows if r not in unwritten]

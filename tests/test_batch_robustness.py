@@ -215,3 +215,32 @@ def test_a_full_disk_for_the_lock_is_a_setup_error_and_leaves_nothing(four_pairs
     with pytest.raises(BatchError, match=r"cannot set up output folder .*: No space left on device; nothing was run"):
         run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
     assert not (tmp_path / "new").exists()  # every folder the run created is gone again
+
+
+def test_a_stop_before_the_first_pair_removes_only_what_the_run_created(four_pairs, fast_config, tmp_path,
+                                                                        monkeypatch):
+    """A folder reached through '..' after a folder the run creates, a file someone adds meanwhile, and the
+    matrix of a first pair interrupted while it was being recorded."""
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "config.yaml").write_text("the user's own\n")
+    real_append = outdir.RowLog.append
+
+    def append(self, fields):
+        fields = list(fields)
+        if self.path.name == "transforms.csv" and fields[0] != "pair_id":
+            (tmp_path / "results" / "notes.txt").write_text("added while the batch ran")
+            raise KeyboardInterrupt  # the matrix is written, the row is not
+        return real_append(self, fields)
+
+    monkeypatch.setattr(outdir.RowLog, "append", append)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(four_pairs.specs(), fast_config, "new/../results", workers=1, register_fn=fake_engine.register)
+    assert sorted(p.name for p in (tmp_path / "results").iterdir()) == ["config.yaml", "notes.txt"]
+    assert (tmp_path / "results" / "config.yaml").read_text() == "the user's own\n"
+
+
+def test_an_output_folder_name_the_system_refuses_is_exit_2(four_pairs, tmp_path, fake_batch):
+    result = invoke("batch", four_pairs.manifest(), "-o", tmp_path / ("a" * 300) / "out", "-q")
+    assert result.exit_code == 2 and "cannot create output folder" in result.output
+    assert "File name too long" in result.output
