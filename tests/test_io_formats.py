@@ -319,3 +319,24 @@ def test_manifest_pairs_las_laz_e57_files(tmp_path):
     assert res.exit_code == 0, res.output
     text = (tmp_path / "pairs.csv").read_text()
     assert "a,src/a.laz,tgt/a.e57" in text and "b,src/b.las,tgt/b.e57" in text
+
+
+@pytest.mark.parametrize("offset, size", [(0.0, 4), (4.5e6, 8)])
+def test_aligned_pcd_files_open_in_open3d_unless_float32_would_lose_precision(tmp_path, offset, size):
+    """Open3D's legacy reader returns zeros for float64 binary PCD: aligned clouds near the origin are
+    written with float32 coordinates (within 1e-7 of the extent); UTM-size ones stay float64."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-1.0, 1.0, size=(500, 3)) + offset
+    write_point_cloud(tmp_path / "in.ply", pts)
+    T = np.eye(4)
+    T[:3, 3] = [0.25, -0.5, 0.125]
+    moved = write_aligned(tmp_path / "in.ply", T, tmp_path / "out.pcd")
+    header = (tmp_path / "out.pcd").read_bytes().split(b"DATA")[0].decode()
+    assert f"SIZE {size} {size} {size}" in header
+    back = read_point_cloud(tmp_path / "out.pcd").points
+    np.testing.assert_allclose(back, moved.points, rtol=0, atol=1e-7 * 2.0)
+    if size == 4:
+        np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "out.pcd")).points),
+                                   moved.points, rtol=0, atol=1e-6)

@@ -18,7 +18,7 @@ Formats (one module each, chosen by the extension of the name the user gave: a l
 extension             read                         write
 ====================  ===========================  ==========================================
 ``.ply``              ASCII, binary LE/BE          binary LE, float64 x y z + attributes
-``.pcd``              ascii, binary, compressed    binary, float64 x y z + attributes
+``.pcd``              ascii, binary, compressed    binary, float32/64 x y z + attributes
 ``.xyz .txt .pts``    text columns                 ``%.17g`` text (+ attribute columns)
 ``.las .laz``         LAS 1.0-1.4, LAZ (lazrs)     LAS/LAZ 1.4 with attributes
 ``.e57``              all scans, poses applied     --
@@ -117,7 +117,8 @@ def load_point_cloud(path: str | Path, *, min_points: int = 10) -> np.ndarray:
     return read_point_cloud(path, min_points=min_points, attributes=False).points
 
 
-def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binary: bool = True) -> None:
+def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binary: bool = True,
+                      open3d_pcd: bool = False) -> None:
     """Write ``cloud`` (a :class:`PointCloud`, or an ``(N, 3)`` array) to ``path``; the format follows
     the extension (:data:`WRITE_EXTENSIONS`).
 
@@ -130,8 +131,10 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     are created; the write is atomic (temporary file in the same folder, then ``os.replace``).
 
     Interoperability note: Open3D 0.20's legacy PCD reader silently returns zeros for ``SIZE 8``
-    (double) fields in binary PCD files; write ``.ply`` (or ASCII ``.pcd``) when Open3D must read the
-    result. Raises :class:`PointCloudError`.
+    (double) fields in binary PCD files. With ``open3d_pcd``, a binary PCD gets float32 x y z instead
+    when that keeps every coordinate within 1e-7 of the cloud's extent
+    (:func:`gctr_cli.io.pcd.float32_is_enough`; UTM-size coordinates stay float64); the aligned clouds
+    gctr writes use it. Raises :class:`PointCloudError`.
     """
     path = Path(path)
     fmt = format_of(path)
@@ -147,7 +150,12 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise PointCloudError(f"{path}: points must have shape (N, 3), got {pts.shape}")
         cloud = PointCloud(pts)
-    data = fmt.write(cloud, binary)
+    if open3d_pcd and binary and fmt.name == "PCD":
+        from gctr_cli.io.pcd import pcd_bytes
+
+        data = pcd_bytes(cloud, binary, float32_if_enough=True)
+    else:
+        data = fmt.write(cloud, binary)
     try:
         atomic_write(path, data)
     except OSError as exc:
@@ -192,5 +200,5 @@ def write_aligned(input_path: str | Path, matrix: np.ndarray, output_path: str |
         )
     cloud = read_point_cloud(input_path, min_points=1, degenerate_ok=True)
     moved = transform_cloud(cloud, M)
-    write_point_cloud(output_path, moved)
+    write_point_cloud(output_path, moved, open3d_pcd=True)
     return moved

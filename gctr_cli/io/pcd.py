@@ -262,10 +262,29 @@ def _parse_header(fh, path: Path) -> _Header:
 _PCD_TYPE = {"f": "F", "i": "I", "u": "U"}
 
 
-def pcd_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
+#: float32 coordinates are written (``float32_if_enough``) when their rounding stays below this share of
+#: the cloud's extent: 10 µm on a 100 m scan, far below any sensor's noise
+FLOAT32_TOLERANCE = 1e-7
+
+
+def float32_is_enough(points: np.ndarray) -> bool:
+    """Whether float32 keeps every coordinate of ``points`` within ``FLOAT32_TOLERANCE`` of the cloud's
+    extent (its largest bounding-box side): false for UTM-size offsets, true for clouds near the origin."""
+    if len(points) == 0:
+        return True
+    extent = float(np.max(np.ptp(points, axis=0)))
+    error = float(np.max(np.abs(points.astype(np.float32).astype(np.float64) - points)))
+    return extent > 0 and error <= FLOAT32_TOLERANCE * extent
+
+
+def pcd_bytes(cloud: PointCloud, binary: bool = True, float32_if_enough: bool = False) -> bytes:
     """The bytes of a PCD file: float64 x y z plus the 1-D numeric attributes in their own types
-    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float); binary, or ASCII with ``%.17g``."""
+    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float); binary, or ASCII with ``%.17g``.
+    With ``float32_if_enough`` the coordinates are float32 where :func:`float32_is_enough` (Open3D's
+    legacy reader cannot read float64 binary PCD files)."""
     pts = np.asarray(cloud.points, dtype=np.float64)
+    if float32_if_enough and float32_is_enough(pts):
+        pts = pts.astype(np.float32)
     n = len(pts)
     cols: list[tuple[str, np.ndarray]] = [("x", pts[:, 0]), ("y", pts[:, 1]), ("z", pts[:, 2])]
     attrs = dict(cloud.attributes)
