@@ -208,7 +208,8 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     setting_up = True
     try:
         before = set(os.listdir(outdir))
-        for name in (TRANSFORMS_FILE, CONFIG_FILE):  # the files setting up may rewrite
+        rewritten = (TRANSFORMS_FILE, CONFIG_FILE) if resume else (CONFIG_FILE,)  # what setting up may rewrite
+        for name in rewritten:
             if (outdir / name).is_file():
                 originals[name] = (outdir / name).read_bytes()
         done = prepare_outdir(outdir, config, resume, {p.pair_id for p in pairs})
