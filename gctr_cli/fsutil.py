@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import stat
 import sys
 import uuid
 from collections.abc import Iterator
@@ -33,9 +34,21 @@ def output_problem(path: str | Path) -> str | None:
         return exc.strerror or str(exc)
 
 
+def _is_special_file(path: Path) -> bool:
+    """Whether ``path`` exists and is not a regular file or folder (a device such as /dev/null or
+    /dev/stdout, a FIFO): replacing it atomically would replace the device itself."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
 def _output_problem(path: Path) -> str | None:
     if path.is_dir():
         return "it is a folder"
+    if _is_special_file(path):
+        return None if os.access(path, os.W_OK) else "it cannot be written"
     for parent in path.absolute().parents:
         if not parent.exists():
             continue
@@ -99,6 +112,10 @@ def atomic_write(path: str | Path, data: bytes | str) -> None:
     """
     path = Path(path)
     payload = data.encode("utf-8") if isinstance(data, str) else data
+    if _is_special_file(path):  # /dev/null, /dev/stdout, a FIFO: write into it, never replace it
+        with open(path, "wb") as fh:
+            fh.write(payload)
+        return
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -276,3 +276,22 @@ def test_decimal_commas_with_tabs_or_semicolons_are_read_and_blank_separated_one
     np.testing.assert_array_equal(load_point_cloud(tmp_path / "tab.xyz"), pts)
     (tmp_path / "de_blank.xyz").write_text(rows(" ", ","))
     load_error(tmp_path / "de_blank.xyz", "line 1", "decimal commas separated by blanks")
+
+
+def test_writing_to_a_fifo_writes_into_it_instead_of_replacing_it(tmp_path):
+    """/dev/null, /dev/stdout and FIFOs are written into: an atomic replace would swap the special file
+    for a regular one (as root, /dev/null itself)."""
+    import stat
+    import threading
+
+    from gctr_cli.io import write_matrix
+
+    fifo = tmp_path / "pipe.txt"
+    os.mkfifo(fifo)
+    received = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()), daemon=True)
+    reader.start()
+    write_matrix(fifo, np.eye(4))
+    reader.join(timeout=10)
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)  # still the FIFO
+    assert received and received[0].decode().splitlines()[0].split() == ["1", "0", "0", "0"]
