@@ -533,7 +533,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
     except KeyboardInterrupt as exc:
         if bar is not None:
             bar.close()
-        if _has_rows(outdir / "transforms.csv"):
+        if _has_rows(outdir / batch_mod.TRANSFORMS_FILE):
             click.echo(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish",
                        err=True)
         else:  # stopped before the first pair was recorded: the run removed what it had created

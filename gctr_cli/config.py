@@ -9,6 +9,7 @@ Load with :func:`load_config`; an unknown key or a value of the wrong type raise
 
 from __future__ import annotations
 
+import functools
 import typing
 from pathlib import Path
 from typing import Any, Literal
@@ -434,6 +435,7 @@ def load_config(path: str | Path | None) -> Config:
     return config_from_dict(data, str(p))
 
 
+@functools.cache
 def _unique_key_loader() -> type:
     """A YAML SafeLoader that rejects a key given twice in one mapping (plain YAML keeps the last one,
     so a second ``engine:`` section would silently replace the first)."""

@@ -107,10 +107,10 @@ class OutdirLock:
                 os.write(fd, self.content.encode())
                 os.fsync(fd)
             except OSError:  # e.g. a full disk: leave no empty lock behind
-                os.close(fd)
                 self.path.unlink(missing_ok=True)
                 raise
-            os.close(fd)
+            finally:
+                os.close(fd)
             self.held = True
             return
         raise LockError(f"could not acquire {self.path} (it keeps changing); is another batch starting?")
