@@ -59,14 +59,31 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
+def _log_level(verbose: int) -> int:
+    return logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
+
+
 def _setup_logging(verbose: int) -> None:
-    level = logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    level = _log_level(verbose)
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
         handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("gctr: %(levelname)s: %(message)s"))
         logger.addHandler(handler)
         logger.propagate = False
     logger.setLevel(level)
+
+
+def _more_verbose(ctx: click.Context, param: click.Parameter, verbose: int) -> None:
+    """``-v`` given after the command (``gctr batch ... -v``): raise the log level set by the group's
+    ``-v`` (never lower it)."""
+    if verbose > 0 and _log_level(verbose) < logger.getEffectiveLevel():
+        _setup_logging(verbose)
+
+
+def verbose_option(command):
+    """The group's ``-v``/``-vv``, also accepted after a command's name."""
+    return click.option("-v", "--verbose", count=True, expose_value=False, callback=_more_verbose,
+                        help="More log output on stderr (-v info, -vv debug); also before the command.")(command)
 
 
 def _die(message: str, code: int = EXIT_USAGE) -> NoReturn:
@@ -212,7 +229,7 @@ def main(verbose: int) -> None:
       3  batch --min-success: success rate below the threshold
       130/143  stopped by Ctrl-C / SIGTERM
 
-    -v / -vv go before the command: gctr -v batch ...
+    -v / -vv go before or after the command: gctr -v batch ... or gctr batch ... -v
     """
     _setup_logging(verbose)
 
@@ -223,6 +240,7 @@ def main(verbose: int) -> None:
 
 
 @main.command()
+@verbose_option
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
@@ -347,6 +365,7 @@ def _check_writable(path: Path | None) -> None:
 
 
 @main.command()
+@verbose_option
 @click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("input", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -434,6 +453,7 @@ def _print_summary(summary: Any, config: Any) -> None:
 
 
 @main.command(epilog=EXIT_CODES_HELP)
+@verbose_option
 @click.argument("manifest", type=click.Path(path_type=Path))
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
               help="YAML config (default: built-in defaults).")
@@ -559,6 +579,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
 
 
 @main.command()
+@verbose_option
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-m", "--matrix", type=click.Path(dir_okay=False, path_type=Path),
@@ -622,6 +643,7 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
 
 
 @main.command()
+@verbose_option
 @click.argument("source_dir", type=click.Path(path_type=Path))
 @click.argument("target_dir", type=click.Path(path_type=Path))
 @click.option("--gt-dir", type=click.Path(path_type=Path), help="Folder of ground-truth matrices named <stem>.txt.")
@@ -705,6 +727,7 @@ def config_group() -> None:
 
 
 @config_group.command("show")
+@verbose_option
 @click.argument("file", required=False, type=click.Path(dir_okay=False))
 def config_show(file: str | None) -> None:
     """Print the default config (or FILE resolved with defaults) as commented YAML.
@@ -721,6 +744,7 @@ def config_show(file: str | None) -> None:
 
 
 @config_group.command("check")
+@verbose_option
 @click.argument("file", type=click.Path(dir_okay=False))
 def config_check(file: str) -> None:
     """Validate FILE: exit 0 and print "ok", or exit 2 naming each bad key and the expected type.
