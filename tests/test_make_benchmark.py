@@ -341,6 +341,36 @@ def test_scene_real_kitchen_pair(tmp_path, scenes):
         assert (frag4.query(src)[0] < 0.03).mean() < 0.05
 
 
+@needs_shared
+def test_scene_noise_option_sets_the_windows_noise(tmp_path, scenes):
+    """--scene-noise replaces the windows' 0.3-0.5 % noise (here by LiDAR-like 0.02-0.03 %); the same seed
+    draws the same windows, so only the noise differs."""
+    clouds, T_4to0 = scenes
+    nclt = {"nclt": clouds["nclt"]}
+    quiet = mb.generate_scene(nclt, T_4to0, 5, tmp_path / "q", ["ply"], n_source=3000, windows_per_scene=1,
+                              real_pairs=0, noise=(0.0002, 0.0003))
+    loud = mb.generate_scene(nclt, T_4to0, 5, tmp_path / "l", ["ply"], n_source=3000, windows_per_scene=1,
+                             real_pairs=0)
+    diag = bbox_diagonal(clouds["nclt"])
+    residual = {}
+    for name, rows in (("quiet", quiet), ("loud", loud)):
+        folder = tmp_path / ("q" if name == "quiet" else "l")
+        src = load_point_cloud(folder / rows[0]["source"])
+        T = read_matrix(folder / rows[0]["gt"])
+        residual[name] = float(np.median(_on_model(clouds["nclt"], apply(T, src))))
+    assert quiet[0]["overlap_src"] == loud[0]["overlap_src"]  # the same windows
+    assert residual["quiet"] < 2 * 0.0003 * diag < residual["loud"]
+
+
+@pytest.mark.parametrize("value", ["0.005,0.003", "x", "0.1,0.2", "-0.001,0.002"])
+def test_scene_noise_option_rejects_bad_values(tmp_path, value):
+    from click.testing import CliRunner
+
+    res = CliRunner().invoke(mb.cli, ["generate", "--levels", "easy", f"--scene-noise={value}", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "--scene-noise" in res.output
+    assert not (tmp_path / "pairs.csv").exists()
+
+
 def test_scene_missing_shared_file_is_named(tmp_path):
     (tmp_path / "real" / "nclt_lidar").mkdir(parents=True)
     with pytest.raises(Exception, match=r"cloud_bin_0\.ply"):
