@@ -13,7 +13,7 @@ def test_default_yaml_matches_the_built_in_defaults():
     assert load_config(CONFIGS / "default.yaml") == Config()
 
 
-@pytest.mark.parametrize("name", ["default.yaml", "fast.yaml", "accurate.yaml"])
+@pytest.mark.parametrize("name", ["default.yaml", "fast.yaml", "accurate.yaml", "scene.yaml"])
 def test_shipped_config_is_valid(name):
     cfg = load_config(CONFIGS / name)
     assert cfg.method == "gctr"
@@ -23,3 +23,12 @@ def test_fast_is_lighter_and_accurate_heavier_than_default():
     d, f, a = (load_config(CONFIGS / n).engine for n in ("default.yaml", "fast.yaml", "accurate.yaml"))
     assert f.triplets.n_target < d.triplets.n_target < a.triplets.n_target
     assert f.ransac.iterations < d.ransac.iterations < a.ransac.iterations
+
+
+def test_scene_config_only_raises_the_threshold():
+    """configs/scene.yaml is the defaults with the threshold measured for sensor-like scene noise."""
+    scene = load_config(CONFIGS / "scene.yaml")
+    assert scene.engine.min_confidence == 0.45 > Config().engine.min_confidence
+    default = Config()
+    same_threshold = scene.engine.model_copy(update={"min_confidence": default.engine.min_confidence})
+    assert scene.model_copy(update={"engine": same_threshold}) == default
