@@ -155,7 +155,7 @@ def run_batch(
     ref = register_ref(register_fn)
     n_workers = resolve_workers(workers, config)
     try:
-        first_created = _first_missing(outdir)
+        created = _missing_folders(outdir)
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
@@ -172,26 +172,31 @@ def run_batch(
         finally:
             lock.release()
     finally:
-        if first_created is not None:  # the folders this run created, if it left nothing in them
-            real = Path(os.path.realpath(outdir))
-            for folder in (real, *real.parents):
-                try:
-                    folder.rmdir()
-                except OSError:
-                    break
-                if folder == first_created:
-                    break
+        for folder in created:  # the folders this run created, if it left nothing in them
+            try:
+                folder.rmdir()
+            except OSError:
+                pass  # not empty: the run (or someone else) left something in it
 
 
-def _first_missing(outdir: Path) -> Path | None:
-    """The outermost folder that creating ``outdir`` will create (``None``: ``outdir`` exists), on its
-    real path (symbolic links and ``..`` resolved, as the system creates it)."""
-    missing = Path(os.path.realpath(outdir))
-    if missing.exists():
-        return None
-    while not missing.parent.exists() and missing.parent != missing:
-        missing = missing.parent
-    return missing
+def _missing_folders(outdir: Path) -> list[Path]:
+    """The folders that creating ``outdir`` will create, deepest first: those on its real path
+    (symbolic links and ``..`` resolved, as the system creates it), and those on the way to it as
+    written (``new/../results`` creates ``new`` too)."""
+    missing = []
+    real = Path(os.path.realpath(outdir))
+    for folder in (real, *real.parents):
+        if folder.exists():
+            break
+        missing.append(folder)
+    written = Path.cwd() / outdir  # not normalised: 'new/..' goes through 'new'
+    for i in range(1, len(written.parts)):
+        prefix = Path(*written.parts[:i])
+        if prefix.name not in ("..", ".") and not os.path.lexists(prefix):
+            folder = Path(os.path.realpath(prefix))
+            if folder not in missing:
+                missing.append(folder)
+    return sorted(missing, key=lambda folder: len(folder.parts), reverse=True)
 
 
 def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool, n_workers: int, ref: Any,

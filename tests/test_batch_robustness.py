@@ -238,6 +238,7 @@ def test_a_stop_before_the_first_pair_removes_only_what_the_run_created(four_pai
         run_batch(four_pairs.specs(), fast_config, "new/../results", workers=1, register_fn=fake_engine.register)
     assert sorted(p.name for p in (tmp_path / "results").iterdir()) == ["config.yaml", "notes.txt"]
     assert (tmp_path / "results" / "config.yaml").read_text() == "the user's own\n"
+    assert not (tmp_path / "new").exists()  # created on the way to results/, removed again
 
 
 def test_an_output_folder_name_the_system_refuses_is_exit_2(four_pairs, tmp_path, fake_batch):
