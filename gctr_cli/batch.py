@@ -189,13 +189,14 @@ def _missing_folders(outdir: Path) -> list[Path]:
         if folder.exists():
             break
         missing.append(folder)
-    written = Path.cwd() / outdir  # not normalised: 'new/..' goes through 'new'
+    written = outdir if outdir.is_absolute() else Path.cwd() / outdir  # not normalised: new/.. passes new
     for i in range(1, len(written.parts)):
         prefix = Path(*written.parts[:i])
-        if prefix.name not in ("..", ".") and not os.path.lexists(prefix):
-            folder = Path(os.path.realpath(prefix))
-            if folder not in missing:
-                missing.append(folder)
+        if prefix.name in ("..", ".") or os.path.lexists(prefix):
+            continue
+        folder = Path(os.path.realpath(prefix))  # missing as written, but maybe reached another way
+        if not os.path.lexists(folder) and folder not in missing:
+            missing.append(folder)
     return sorted(missing, key=lambda folder: len(folder.parts), reverse=True)
 
 

@@ -241,6 +241,23 @@ def test_a_stop_before_the_first_pair_removes_only_what_the_run_created(four_pai
     assert not (tmp_path / "new").exists()  # created on the way to results/, removed again
 
 
+def test_a_stop_before_the_first_pair_keeps_an_empty_folder_that_existed(four_pairs, fast_config, tmp_path,
+                                                                          monkeypatch):
+    """new/../results/sub: the run creates new/ and results/sub/, and removes both; the empty results/ it
+    found is kept (the path as written passes through new/, which did not exist, on its way to it)."""
+    (tmp_path / "results").mkdir()
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(outdir.RowLog, "append", stop)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(four_pairs.specs(), fast_config, "new/../results/sub", workers=1, register_fn=fake_engine.register)
+    assert not (tmp_path / "new").exists()
+    assert (tmp_path / "results").is_dir() and list((tmp_path / "results").iterdir()) == []
+
+
 def test_an_output_folder_name_the_system_refuses_is_exit_2(four_pairs, tmp_path, fake_batch):
     result = invoke("batch", four_pairs.manifest(), "-o", tmp_path / ("a" * 300) / "out", "-q")
     assert result.exit_code == 2 and "cannot create output folder" in result.output
