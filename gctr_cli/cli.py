@@ -73,17 +73,22 @@ def _setup_logging(verbose: int) -> None:
     logger.setLevel(level)
 
 
+VERBOSITY = "gctr.verbose"  # key of the -v count in click's context meta (shared by all contexts)
+
+
 def _more_verbose(ctx: click.Context, param: click.Parameter, verbose: int) -> None:
-    """``-v`` given after the command (``gctr batch ... -v``): raise the log level set by the group's
-    ``-v`` (never lower it)."""
-    if verbose > 0 and _log_level(verbose) < logger.getEffectiveLevel():
-        _setup_logging(verbose)
+    """``-v`` given after a command's name (``gctr batch ... -v``, ``gctr config -v show``): counts
+    with the ones before it (``gctr -v register ... -v`` is ``-vv``)."""
+    if verbose > 0:
+        ctx.meta[VERBOSITY] = ctx.meta.get(VERBOSITY, 0) + verbose
+        _setup_logging(ctx.meta[VERBOSITY])
 
 
 def verbose_option(command):
     """The group's ``-v``/``-vv``, also accepted after a command's name."""
-    return click.option("-v", "--verbose", count=True, expose_value=False, callback=_more_verbose,
-                        help="More log output on stderr (-v info, -vv debug); also before the command.")(command)
+    option = click.option("-v", "--verbose", count=True, expose_value=False, callback=_more_verbose,
+                          help="More log output on stderr (-v info, -vv debug); counts with -v before the command.")
+    return option(command)
 
 
 def _die(message: str, code: int = EXIT_USAGE) -> NoReturn:
@@ -231,6 +236,7 @@ def main(verbose: int) -> None:
 
     -v / -vv go before or after the command: gctr -v batch ... or gctr batch ... -v
     """
+    click.get_current_context().meta[VERBOSITY] = verbose
     _setup_logging(verbose)
 
 
@@ -240,7 +246,6 @@ def main(verbose: int) -> None:
 
 
 @main.command()
-@verbose_option
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
@@ -254,6 +259,7 @@ def main(verbose: int) -> None:
 @click.option("--aligned", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write SOURCE moved onto TARGET to this file (.ply, .pcd, .las, .laz, .xyz, .pts, .txt; "
                    "attributes kept where the format allows).")
+@verbose_option
 def register(source: Path, target: Path, config_path: str | None, output: Path | None, gt: Path | None,
              seed: int | None, aligned: Path | None) -> None:
     """Register SOURCE onto TARGET and print the similarity transform.
@@ -365,11 +371,11 @@ def _check_writable(path: Path | None) -> None:
 
 
 @main.command()
-@verbose_option
 @click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("input", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts or .txt.")
+@verbose_option
 def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the argument's name in --help
     """Move the cloud INPUT by the 4x4 MATRIX and write it to OUTPUT.
 
@@ -453,7 +459,6 @@ def _print_summary(summary: Any, config: Any) -> None:
 
 
 @main.command(epilog=EXIT_CODES_HELP)
-@verbose_option
 @click.argument("manifest", type=click.Path(path_type=Path))
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
               help="YAML config (default: built-in defaults).")
@@ -477,6 +482,7 @@ def _print_summary(summary: Any, config: Any) -> None:
 @click.option("--write-aligned", is_flag=True,
               help="Also write OUTDIR/aligned/<pair_id>.<ext>: each registered source moved onto its target "
                    "(the source's format when writable, else PLY; attributes kept where the format allows).")
+@verbose_option
 def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | None, resume: bool, quiet: bool,
           min_success: float | None, executor: str | None, scheduler: str | None, snapshots: bool,
           write_aligned: bool) -> None:
@@ -579,7 +585,6 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
 
 
 @main.command()
-@verbose_option
 @click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-m", "--matrix", type=click.Path(dir_okay=False, path_type=Path),
@@ -589,6 +594,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
 @click.option("--max-points", type=click.IntRange(min=10), default=3000, show_default=True,
               help="Points drawn per cloud (evenly subsampled).")
 @click.option("--title", help="Title of the picture (default: the two file names).")
+@verbose_option
 def show(source: Path, target: Path, matrix: Path | None, output: Path, max_points: int, title: str | None) -> None:
     """Draw SOURCE (orange) and TARGET (blue) in three orthogonal views into a PNG.
 
@@ -643,12 +649,12 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
 
 
 @main.command()
-@verbose_option
 @click.argument("source_dir", type=click.Path(path_type=Path))
 @click.argument("target_dir", type=click.Path(path_type=Path))
 @click.option("--gt-dir", type=click.Path(path_type=Path), help="Folder of ground-truth matrices named <stem>.txt.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Manifest CSV to write.")
+@verbose_option
 def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Path) -> None:
     """Build a pair manifest by matching file stems of SOURCE_DIR and TARGET_DIR.
 
@@ -722,13 +728,14 @@ def commented_yaml(config: Any) -> str:
 
 
 @main.group("config")
+@verbose_option
 def config_group() -> None:
     """Show the default configuration or validate a config file."""
 
 
 @config_group.command("show")
-@verbose_option
 @click.argument("file", required=False, type=click.Path(dir_okay=False))
+@verbose_option
 def config_show(file: str | None) -> None:
     """Print the default config (or FILE resolved with defaults) as commented YAML.
 
@@ -744,8 +751,8 @@ def config_show(file: str | None) -> None:
 
 
 @config_group.command("check")
-@verbose_option
 @click.argument("file", type=click.Path(dir_okay=False))
+@verbose_option
 def config_check(file: str) -> None:
     """Validate FILE: exit 0 and print "ok", or exit 2 naming each bad key and the expected type.
 

@@ -256,9 +256,10 @@ def test_register_command(runner, fake_register, four_pairs, tmp_path):
     assert res2.exit_code == 0 and "seed: 0" in res2.stdout.splitlines()
 
 
-@pytest.mark.parametrize("flags", [("-v", "register"), ("register", "-v"), ("-vv", "register", "-v")])
+@pytest.mark.parametrize("flags", [("-v", "register"), ("register", "-v"), ("-v", "register", "-v"),
+                                   ("-vv", "register", "-v")])
 def test_verbose_before_or_after_the_command(runner, fake_register, four_pairs, tmp_path, flags):
-    """-v works on either side of the command name; a -v after it never lowers the group's -vv."""
+    """-v works on either side of the command name, and the two sides count together."""
     row = four_pairs.rows[1]
     src, tgt = (four_pairs.root / row[k] for k in ("source", "target"))
     out_matrix = tmp_path / "est.txt"
@@ -267,11 +268,18 @@ def test_verbose_before_or_after_the_command(runner, fake_register, four_pairs, 
         res = invoke(runner, *before, "register", src, tgt, "-o", out_matrix, *after)
         assert res.exit_code == 0, res.output
         assert f"gctr: INFO: wrote {out_matrix}" in res.stderr
-        assert cli.logger.getEffectiveLevel() == (10 if "-vv" in flags else 20)
+        assert cli.logger.getEffectiveLevel() == (10 if "".join(flags).count("v") >= 2 else 20)
     finally:
         cli._setup_logging(0)
     quiet = invoke(runner, "register", src, tgt, "-o", out_matrix)
     assert quiet.exit_code == 0 and "INFO" not in quiet.stderr
+
+
+def test_verbose_on_the_config_group_and_its_commands(runner):
+    for args in (("config", "-v", "show"), ("config", "show", "-v"), ("-v", "config", "-v", "show")):
+        res = invoke(runner, *args)
+        assert res.exit_code == 0 and res.stdout.startswith("# gctr configuration"), args
+    cli._setup_logging(0)
 
 
 def test_register_exit_codes(runner, fake_register, dataset, tmp_path):
