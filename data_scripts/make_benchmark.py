@@ -547,8 +547,8 @@ def generate_scene(scenes: dict[str, np.ndarray], T_4to0: np.ndarray, seed: int,
     """Level ``scene``: ``windows_per_scene`` window pairs per scene + ``real_pairs`` draws of the real
     3DMatch redkitchen pair (source fragment 0 moved by a random similarity, target fragment 4 at 1/4-1/2
     density, truth ``inv(T_4to0) @ inv(A)``). ``noise``: the windows' noise range as fractions of the
-    window diagonal instead of the level's 0.3-0.5 % (e.g. sensor-like 0.0002-0.0003, 3-5 cm on the NCLT
-    windows), for measuring the engine away from the level's cross-source noise."""
+    window diagonal instead of the level's 0.3-0.5 % (e.g. sensor-like 0.0002-0.0003, about 2-4 cm on the
+    NCLT windows), for measuring the engine away from the level's cross-source noise."""
     p = SCENE if noise is None else {**SCENE, "noise_lo": noise[0], "noise_hi": noise[1]}
     rows: list[dict] = []
     for name, scene in scenes.items():
@@ -852,8 +852,9 @@ def ship(shared: Path, out: Path) -> None:
 @click.option("--formats", default="ply", show_default=True, help="formats cycled over pairs: ply,pcd,xyz")
 @click.option("--n-source", type=click.IntRange(min=10), default=20000, show_default=True)
 @click.option("--scene-noise", default=None, metavar="LO,HI",
-              help="noise of the scene level's windows as fractions of the window diagonal (default 0.003,0.005; "
-                   "0.0002,0.0003 is LiDAR-like, 3-5 cm on the NCLT windows)")
+              help=f"noise of the scene level's windows as fractions of the window diagonal (default "
+                   f"{SCENE['noise_lo']},{SCENE['noise_hi']}; 0.0002,0.0003 is sensor-like: about 2-4 cm on the NCLT "
+                   f"windows, 1 mm on the kitchen windows; the real kitchen pairs get no noise either way)")
 @click.option("--pcd-encoding", type=click.Choice(["binary", "ascii"]), default="binary", show_default=True,
               help="PCD DATA type (Open3D's legacy reader mis-reads binary float64 PCD)")
 def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full_res, real_per_group, formats,
@@ -872,6 +873,8 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
         raise click.BadParameter(f"unknown level(s) {bad}; choose from {','.join(ALL_LEVELS)}", param_hint="--levels")
     fmts = _parse_formats(formats)
     noise = _parse_noise(scene_noise) if scene_noise is not None else None
+    if noise is not None and "scene" not in _split(levels):
+        raise click.UsageError("--scene-noise only applies to level 'scene'; add it to --levels")
     synthetic = [lv for lv in level_names if lv in LEVELS]
     special = [lv for lv in level_names if lv in SPECIAL_LEVELS]
     scenes = load_scenes(shared) if "scene" in level_names else None  # fail early on missing files

@@ -366,8 +366,18 @@ def test_scene_noise_option_sets_the_windows_noise(tmp_path, scenes):
 def test_scene_noise_option_rejects_bad_values(tmp_path, value):
     from click.testing import CliRunner
 
-    res = CliRunner().invoke(mb.cli, ["generate", "--levels", "easy", f"--scene-noise={value}", "--out", str(tmp_path)])
+    res = CliRunner().invoke(mb.cli, ["generate", "--levels", "scene", f"--scene-noise={value}", "--out",
+                                      str(tmp_path)])
     assert res.exit_code == 2 and "--scene-noise" in res.output
+    assert not (tmp_path / "pairs.csv").exists()
+
+
+def test_scene_noise_without_the_scene_level_is_a_usage_error(tmp_path):
+    from click.testing import CliRunner
+
+    res = CliRunner().invoke(mb.cli, ["generate", "--levels", "easy", "--scene-noise", "0.0002,0.0003", "--out",
+                                      str(tmp_path)])
+    assert res.exit_code == 2 and "--scene-noise only applies to level 'scene'" in res.output
     assert not (tmp_path / "pairs.csv").exists()
 
 
