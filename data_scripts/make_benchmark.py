@@ -873,7 +873,7 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
         raise click.BadParameter(f"unknown level(s) {bad}; choose from {','.join(ALL_LEVELS)}", param_hint="--levels")
     fmts = _parse_formats(formats)
     noise = _parse_noise(scene_noise) if scene_noise is not None else None
-    if noise is not None and "scene" not in _split(levels):
+    if noise is not None and "scene" not in level_names:
         raise click.UsageError("--scene-noise only applies to level 'scene'; add it to --levels")
     synthetic = [lv for lv in level_names if lv in LEVELS]
     special = [lv for lv in level_names if lv in SPECIAL_LEVELS]

@@ -59,12 +59,8 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
-def _log_level(verbose: int) -> int:
-    return logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
-
-
 def _setup_logging(verbose: int) -> None:
-    level = _log_level(verbose)
+    level = logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
         handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("gctr: %(levelname)s: %(message)s"))

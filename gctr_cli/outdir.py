@@ -224,11 +224,16 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str
     truncate_partial_line(transforms)
     truncate_partial_line(errors)
     rows = read_rows(transforms, TRANSFORMS_COLUMNS)
-    unwritten = [r for r in rows if r["status"] == "failed" and r["message"].startswith(OUTPUT_FAILURE)
-                 and (pair_ids is None or r["pair_id"] in pair_ids)]
-    if unwritten:  # the folder's fault (a full disk, ...), not the pair's: run them again
-        logger.info("%s: running again %d pairs whose outputs could not be written", transforms, len(unwritten))
-        rows = [r for r in rows if r not in unwritten]
+
+    def unwritten(row: dict[str, str]) -> bool:  # the folder's fault (a full disk, ...), not the pair's
+        return (row["status"] == "failed" and row["message"].startswith(OUTPUT_FAILURE)
+                and (pair_ids is None or row["pair_id"] in pair_ids))
+
+    kept_rows = [r for r in rows if not unwritten(r)]
+    if len(kept_rows) < len(rows):  # run them again
+        logger.info("%s: running again %d pairs whose outputs could not be written", transforms,
+                    len(rows) - len(kept_rows))
+        rows = kept_rows
         atomic_write(transforms, csv_line(TRANSFORMS_COLUMNS)
                      + "".join(csv_line(r[c] for c in TRANSFORMS_COLUMNS) for r in rows))
     done = {r["pair_id"] for r in rows}
