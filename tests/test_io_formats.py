@@ -321,10 +321,11 @@ def test_manifest_pairs_las_laz_e57_files(tmp_path):
     assert "a,src/a.laz,tgt/a.e57" in text and "b,src/b.las,tgt/b.e57" in text
 
 
-@pytest.mark.parametrize("offset, size", [(0.0, 4), (4.5e6, 8)])
-def test_aligned_pcd_files_open_in_open3d_unless_float32_would_lose_precision(tmp_path, offset, size):
+@pytest.mark.parametrize("offset, size, data", [(0.0, 4, "binary"), (4.5e6, 8, "ascii")])
+def test_aligned_pcd_files_open_in_open3d(tmp_path, offset, size, data):
     """Open3D's legacy reader returns zeros for float64 binary PCD: aligned clouds near the origin are
-    written with float32 coordinates (within 1e-7 of the extent); UTM-size ones stay float64."""
+    written as binary float32 (within 1e-7 of the extent); UTM-size ones as ASCII float64, which Open3D
+    reads exactly."""
     import open3d as o3d
 
     rng = np.random.default_rng(5)
@@ -335,8 +336,8 @@ def test_aligned_pcd_files_open_in_open3d_unless_float32_would_lose_precision(tm
     moved = write_aligned(tmp_path / "in.ply", T, tmp_path / "out.pcd")
     header = (tmp_path / "out.pcd").read_bytes().split(b"DATA")[0].decode()
     assert f"SIZE {size} {size} {size}" in header
+    assert (tmp_path / "out.pcd").read_bytes().split(b"DATA ")[1].startswith(data.encode())
     back = read_point_cloud(tmp_path / "out.pcd").points
     np.testing.assert_allclose(back, moved.points, rtol=0, atol=1e-7 * 2.0)
-    if size == 4:
-        np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "out.pcd")).points),
-                                   moved.points, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "out.pcd")).points),
+                               moved.points, rtol=0, atol=1e-6 if size == 4 else 0.0)

@@ -131,10 +131,10 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     are created; the write is atomic (temporary file in the same folder, then ``os.replace``).
 
     Interoperability note: Open3D 0.20's legacy PCD reader silently returns zeros for ``SIZE 8``
-    (double) fields in binary PCD files. With ``open3d_pcd``, a binary PCD gets float32 x y z instead
-    when that keeps every coordinate within 1e-7 of the cloud's extent
-    (:func:`gctr_cli.io.pcd.float32_is_enough`; UTM-size coordinates stay float64); the aligned clouds
-    gctr writes use it. Raises :class:`PointCloudError`.
+    (double) fields in binary PCD files, but reads them exactly from ASCII ones. With ``open3d_pcd``, a
+    binary PCD gets float32 x y z when that keeps every coordinate within 1e-7 of the cloud's extent
+    (:func:`gctr_cli.io.pcd.float32_is_enough`), and is written as ASCII float64 otherwise (UTM-size
+    coordinates); the aligned clouds gctr writes use it. Raises :class:`PointCloudError`.
     """
     path = Path(path)
     fmt = format_of(path)
@@ -151,9 +151,11 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
             raise PointCloudError(f"{path}: points must have shape (N, 3), got {pts.shape}")
         cloud = PointCloud(pts)
     if open3d_pcd and binary and fmt.name == "PCD":
-        from gctr_cli.io.pcd import pcd_bytes
+        from gctr_cli.io.pcd import float32_is_enough, pcd_bytes
 
-        data = pcd_bytes(cloud, binary, float32_if_enough=True)
+        # float32 binary where it is exact enough, else float64 as text: Open3D reads both correctly
+        as_float32 = float32_is_enough(cloud.points)
+        data = pcd_bytes(cloud, binary=as_float32, float32=as_float32)
     else:
         data = fmt.write(cloud, binary)
     try:

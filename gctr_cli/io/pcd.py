@@ -262,8 +262,8 @@ def _parse_header(fh, path: Path) -> _Header:
 _PCD_TYPE = {"f": "F", "i": "I", "u": "U"}
 
 
-#: float32 coordinates are written (``float32_if_enough``) when their rounding stays below this share of
-#: the cloud's extent: 10 µm on a 100 m scan, far below any sensor's noise
+#: aligned clouds get float32 coordinates (``write_point_cloud(..., open3d_pcd=True)``) when their
+#: rounding stays below this share of the cloud's extent: 10 µm on a 100 m scan, far below any sensor's noise
 FLOAT32_TOLERANCE = 1e-7
 
 
@@ -277,13 +277,13 @@ def float32_is_enough(points: np.ndarray) -> bool:
     return extent > 0 and error <= FLOAT32_TOLERANCE * extent
 
 
-def pcd_bytes(cloud: PointCloud, binary: bool = True, float32_if_enough: bool = False) -> bytes:
+def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> bytes:
     """The bytes of a PCD file: float64 x y z plus the 1-D numeric attributes in their own types
     (``red``/``green``/``blue`` packed into PCL's ``rgb`` float); binary, or ASCII with ``%.17g``.
-    With ``float32_if_enough`` the coordinates are float32 where :func:`float32_is_enough` (Open3D's
-    legacy reader cannot read float64 binary PCD files)."""
+    With ``float32`` the coordinates are float32 (Open3D's legacy reader cannot read float64 binary
+    PCD files; check :func:`float32_is_enough` first)."""
     pts = np.asarray(cloud.points, dtype=np.float64)
-    if float32_if_enough and float32_is_enough(pts):
+    if float32:
         pts = pts.astype(np.float32)
     n = len(pts)
     cols: list[tuple[str, np.ndarray]] = [("x", pts[:, 0]), ("y", pts[:, 1]), ("z", pts[:, 2])]
