@@ -183,9 +183,11 @@ def test_ply_pcd_writers_keep_coordinates_and_every_attribute(tmp_path, rich_clo
     write_point_cloud(tmp_path / f"out{ext}", rich_cloud)
     back = read_point_cloud(tmp_path / f"out{ext}")
     np.testing.assert_array_equal(back.points, rich_cloud.points)
+    pcd_normals = {"nx": "normal_x", "ny": "normal_y", "nz": "normal_z"} if ext == ".pcd" else {}
     for k, v in rich_cloud.attributes.items():
-        np.testing.assert_array_equal(back.attributes[k], v, err_msg=k)
-        assert back.attributes[k].dtype == v.dtype, k
+        name = pcd_normals.get(k, k)  # PCD names normals the PCL way
+        np.testing.assert_array_equal(back.attributes[name], v, err_msg=k)
+        assert back.attributes[name].dtype == v.dtype, k
 
 
 @pytest.mark.parametrize("ext", [".las", ".laz"])
@@ -341,3 +343,30 @@ def test_aligned_pcd_files_open_in_open3d(tmp_path, offset, size, data):
     np.testing.assert_allclose(back, moved.points, rtol=0, atol=1e-7 * 2.0)
     np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "out.pcd")).points),
                                moved.points, rtol=0, atol=1e-6 if size == 4 else 0.0)
+
+
+@pytest.mark.parametrize("names, out_name, expected", [
+    (("nx", "ny", "nz"), "out.pcd", ("normal_x", "normal_y", "normal_z")),
+    (("normal_x", "normal_y", "normal_z"), "out.ply", ("nx", "ny", "nz")),
+])
+def test_normals_converted_between_formats_are_found_by_open3d(tmp_path, names, out_name, expected):
+    """PLY readers look for ``nx ny nz`` and PCD readers for ``normal_x ...``: an aligned cloud written
+    in the other format renames its normals, so Open3D finds them, rotated with the cloud."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(-1.0, 1.0, size=(300, 3))
+    normals = rng.normal(size=(300, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    attrs = {n: normals[:, j] for j, n in enumerate(names)}
+    attrs["intensity"] = rng.uniform(0, 1, 300).astype(np.float32)
+    src = tmp_path / ("in.ply" if out_name.endswith(".pcd") else "in.pcd")
+    write_point_cloud(src, PointCloud(pts, attrs))
+    R = rotation([1.0, 2.0, -0.5], 40.0)
+    T = np.eye(4)
+    T[:3, :3] = 2.0 * R
+    write_aligned(src, T, tmp_path / out_name)
+    assert set(expected) <= set(read_point_cloud(tmp_path / out_name).attributes)
+    o3d_cloud = o3d.io.read_point_cloud(str(tmp_path / out_name))
+    assert o3d_cloud.has_normals()
+    np.testing.assert_allclose(np.asarray(o3d_cloud.normals), normals @ R.T, rtol=0, atol=1e-6)

@@ -10,7 +10,7 @@ import numpy as np
 
 from gctr_cli.io.errors import PointCloudError, clean
 
-__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "transform_cloud", "validate_cloud"]
+__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "named_normals", "transform_cloud", "validate_cloud"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -102,6 +102,19 @@ def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
                 kind = attrs[n].dtype
                 attrs[n] = nrm[:, j].astype(kind) if kind.kind == "f" else nrm[:, j]
     return PointCloud(moved, attrs, cloud.source_format, cloud.meta)
+
+
+def named_normals(attributes: dict[str, np.ndarray], names: tuple[str, str, str]) -> dict[str, np.ndarray]:
+    """``attributes`` with a normal triple of another convention (:data:`NORMAL_NAMES`) renamed to
+    ``names``, in place of the old names: PLY readers look for ``nx ny nz``, PCD readers for
+    ``normal_x normal_y normal_z``, so a cloud converted between them keeps readable normals."""
+    if all(n in attributes for n in names):
+        return dict(attributes)
+    for other in NORMAL_NAMES:
+        if other != names and all(n in attributes for n in other):
+            renamed = dict(zip(other, names, strict=True))
+            return {renamed.get(k, k): v for k, v in attributes.items()}
+    return dict(attributes)
 
 
 def _collinear(pts: np.ndarray) -> bool:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud
+from gctr_cli.io.cloud import PointCloud, named_normals
 from gctr_cli.io.errors import PointCloudError, quote
 from gctr_cli.io.lines import LineReader, parse_float, read_rows
 
@@ -370,11 +370,11 @@ def _skip_element(path: Path, body: bytes, el: _Element, offset: int, order: str
 
 def ply_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
     """The bytes of a PLY file: float64 x y z plus every 1-D attribute in its own type (binary little
-    endian when ``binary``, else ASCII with ``%.17g``)."""
+    endian when ``binary``, else ASCII with ``%.17g``). Normals are written as ``nx ny nz``."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     n = len(pts)
     cols: list[tuple[str, np.ndarray]] = [("x", pts[:, 0]), ("y", pts[:, 1]), ("z", pts[:, 2])]
-    for name, values in cloud.attributes.items():
+    for name, values in named_normals(cloud.attributes, ("nx", "ny", "nz")).items():
         v = np.asarray(values)
         if v.shape != (n,) or name in ("x", "y", "z"):
             continue
