@@ -32,6 +32,8 @@ logger = logging.getLogger(__name__)
 __all__ = ["RegisterFn", "default_register", "derive_seed", "limit_native_threads", "resolve_ref",
            "resolve_register_fn", "run_pair"]
 
+#: ``runtime_s`` of a pair whose engine never ran (an unreadable cloud or ground truth)
+NOT_RUN = 0.0
 
 
 def derive_seed(base_seed: int, pair_id: str) -> int:
@@ -166,9 +168,9 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
         try:
             clouds[role] = load_point_cloud(path)
         except PointCloudError as exc:
-            return failed_outcome(spec, seed, str(exc), "input", elapsed())
+            return failed_outcome(spec, seed, str(exc), "input", NOT_RUN)
         except Exception as exc:  # noqa: BLE001 - a loader bug must still name the file
-            return failed_outcome(spec, seed, f"{path}: {exc_message(exc)}", "input", elapsed())
+            return failed_outcome(spec, seed, f"{path}: {exc_message(exc)}", "input", NOT_RUN)
     source, target = clouds["source"], clouds["target"]
 
     # 2. ground truth (checked before the expensive part)
@@ -180,9 +182,9 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
             if not ok:
                 raise MatrixError(f"{spec.gt}: not a similarity transform: {reason}")
         except MatrixError as exc:
-            return failed_outcome(spec, seed, f"ground truth {exc}", "ground_truth", elapsed())
+            return failed_outcome(spec, seed, f"ground truth {exc}", "ground_truth", NOT_RUN)
         except Exception as exc:  # noqa: BLE001
-            return failed_outcome(spec, seed, f"ground truth {spec.gt}: {exc_message(exc)}", "ground_truth", elapsed())
+            return failed_outcome(spec, seed, f"ground truth {spec.gt}: {exc_message(exc)}", "ground_truth", NOT_RUN)
 
     # 3. registration
     from gctr_cli.methods import method_config

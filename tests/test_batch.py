@@ -223,6 +223,8 @@ def test_bad_inputs_give_failed_rows_and_the_rest_completes(four_pairs, fast_con
         assert rows[pid]["message"].startswith(msg), (pid, rows[pid]["message"])
         assert all(rows[pid][c] == "" for c in ("scale",) + batch.MATRIX_COLUMNS)
         assert not (tmp_path / "out" / "matrices" / f"{pid}.txt").exists()
+        engine_ran = pid in ("raises", "fails")
+        assert (float(rows[pid]["runtime_s"]) > 0) == engine_ran, (pid, rows[pid]["runtime_s"])  # 0: never ran
     for pid in ("ply_ply", "pcd_xyz", "xyz_ply", "ply_pcd_utm", "no_gt"):
         assert rows[pid]["status"] == "ok"
     erows = by_id(read_csv(tmp_path / "out" / "tm_errors.csv")[1])
