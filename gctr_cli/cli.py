@@ -226,7 +226,8 @@ def main(verbose: int) -> None:
     Exit codes:
       0  success
       1  registration failed (register) / at least one pair failed (batch)
-      2  usage, file, manifest or config error: nothing was run
+      2  usage, file, manifest or config error: nothing was run; or a
+         batch had to stop (finished pairs saved: --resume)
       3  batch --min-success: success rate below the threshold
       130/143  stopped by Ctrl-C / SIGTERM
 
@@ -247,7 +248,7 @@ def main(verbose: int) -> None:
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
               help="YAML config (default: built-in defaults).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
-              help="Write the 4x4 matrix to this file.")
+              help="Write the 4x4 matrix to this file (missing folders are created).")
 @click.option("--gt", type=click.Path(dir_okay=False, path_type=Path),
               help="Ground-truth matrix: also print the errors.")
 @click.option("--seed", type=click.IntRange(min=0), help="Engine seed (default: the config seed). To reproduce a "
@@ -370,7 +371,7 @@ def _check_writable(path: Path | None) -> None:
 @click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("input", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts or .txt.")
+              help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts or .txt (missing folders are created).")
 @verbose_option
 def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the argument's name in --help
     """Move the cloud INPUT by the 4x4 MATRIX and write it to OUTPUT.
@@ -448,8 +449,8 @@ def _print_summary(summary: Any, config: Any) -> None:
             echo(f"  {pid}: {msg}")
         if len(s.failures) > 50:
             echo(f"  ... and {len(s.failures) - 50} more (see transforms.csv)")
-    snaps = ", snapshots/" if (Path(s.outdir) / "snapshots").is_dir() else ""
-    echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml{snaps}")
+    extras = "".join(f", {name}/" for name in ("snapshots", "aligned") if (Path(s.outdir) / name).is_dir())
+    echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml{extras}")
     if (Path(s.outdir) / "report.html").exists():
         echo(f"report: {s.outdir}/report.html")
 

@@ -365,6 +365,7 @@ def test_batch_write_aligned(runner, fake_batch, four_pairs, tmp_path):
     out = tmp_path / "out"
     res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "-j", 1, "--write-aligned")
     assert res.exit_code == 0, res.output
+    assert "matrices/, config.yaml, aligned/" in res.stdout
     specs = {s.pair_id: s for s in four_pairs.specs()}
     _, rows = read_csv(out / "transforms.csv")
     for r in rows:
