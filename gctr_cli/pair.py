@@ -156,12 +156,8 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
     from gctr_cli.metrics import is_similarity, transform_errors
 
-    t0 = time.perf_counter()
     if seed is None:
         seed = derive_seed(config.seed, spec.pair_id)
-
-    def elapsed() -> float:
-        return time.perf_counter() - t0
 
     # 1. point clouds
     for role, path in (("source", spec.source), ("target", spec.target)):
@@ -190,6 +186,12 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
     from gctr_cli.methods import method_config
 
     fn = register_fn if register_fn is not None else default_register(config)
+    t0 = time.perf_counter()
+
+    def elapsed() -> float:
+        """The engine's time so far (reading the files excluded), for methods that report none."""
+        return time.perf_counter() - t0
+
     try:
         result = fn(source, target, method_config(config), seed=seed)
     except Exception as exc:  # every problem becomes a failed row

@@ -370,3 +370,55 @@ def test_normals_converted_between_formats_are_found_by_open3d(tmp_path, names, 
     o3d_cloud = o3d.io.read_point_cloud(str(tmp_path / out_name))
     assert o3d_cloud.has_normals()
     np.testing.assert_allclose(np.asarray(o3d_cloud.normals), normals @ R.T, rtol=0, atol=1e-6)
+
+
+def test_a_stray_attribute_named_like_the_other_normals_is_not_overwritten(tmp_path):
+    """A PLY's ``nx ny nz`` are not renamed to PCD's ``normal_x ...`` when a column ``normal_x`` exists
+    already: both keep their values (the normals rotated), nothing is mixed."""
+    rng = np.random.default_rng(9)
+    pts = rng.uniform(-1.0, 1.0, size=(50, 3))
+    normals = np.tile([0.0, 0.0, 1.0], (50, 1))
+    stray = np.full(50, 7.0)
+    write_point_cloud(tmp_path / "in.ply", PointCloud(pts, {"nx": normals[:, 0], "ny": normals[:, 1],
+                                                            "nz": normals[:, 2], "normal_x": stray}))
+    T = np.eye(4)
+    T[:3, :3] = rotation([1.0, 0.0, 0.0], 90.0)
+    write_aligned(tmp_path / "in.ply", T, tmp_path / "out.pcd")
+    back = read_point_cloud(tmp_path / "out.pcd").attributes
+    np.testing.assert_array_equal(back["normal_x"], stray)
+    moved = np.stack([back[n] for n in ("nx", "ny", "nz")], axis=1)
+    np.testing.assert_allclose(moved, normals @ T[:3, :3].T, atol=1e-6)
+
+
+@pytest.mark.parametrize("out_name", ["out.pcd", "out.ply"])
+@pytest.mark.parametrize("widening", [257, 256, 1])
+def test_sixteen_bit_las_colours_become_eight_bit_colours_open3d_reads(tmp_path, out_name, widening):
+    """LAS colours are 16-bit (8-bit values ×257 or ×256, or plain 8-bit values in 16-bit fields); PLY
+    and PCD readers expect 8 bits, so a LAS cloud written as PLY/PCD gets their high byte (or narrowed)."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(10)
+    pts = rng.uniform(-1.0, 1.0, size=(200, 3))
+    rgb8 = rng.integers(0, 256, size=(200, 3)).astype(np.uint16)
+    stored = rgb8 * widening
+    write_point_cloud(tmp_path / "in.las", PointCloud(pts, {k: stored[:, j].astype(np.uint16)
+                                                            for j, k in enumerate(("red", "green", "blue"))}))
+    assert read_point_cloud(tmp_path / "in.las").attributes["red"].dtype == np.uint16
+    write_aligned(tmp_path / "in.las", np.eye(4), tmp_path / out_name)
+    back = read_point_cloud(tmp_path / out_name).attributes
+    np.testing.assert_array_equal(np.stack([back[k] for k in ("red", "green", "blue")], axis=1), rgb8)
+    colours = np.asarray(o3d.io.read_point_cloud(str(tmp_path / out_name)).colors)
+    np.testing.assert_allclose(colours, rgb8 / 255.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+def test_ascii_files_written_in_several_blocks_round_trip_exactly(tmp_path, rich_cloud, ext, monkeypatch):
+    """ASCII rows are formatted a block at a time; with blocks smaller than the cloud, the file is the
+    same as written in one block and reads back exactly."""
+    import gctr_cli.io.ply as ply
+
+    write_point_cloud(tmp_path / f"one{ext}", rich_cloud, binary=False)
+    monkeypatch.setattr(ply, "TEXT_BLOCK_ROWS", 7)
+    write_point_cloud(tmp_path / f"blocks{ext}", rich_cloud, binary=False)
+    assert (tmp_path / f"blocks{ext}").read_bytes() == (tmp_path / f"one{ext}").read_bytes()
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / f"blocks{ext}").points, rich_cloud.points)

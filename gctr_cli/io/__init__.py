@@ -18,7 +18,8 @@ Formats (one module each, chosen by the extension of the name the user gave: a l
 extension             read                         write
 ====================  ===========================  ==========================================
 ``.ply``              ASCII, binary LE/BE          binary LE, float64 x y z + attributes
-``.pcd``              ascii, binary, compressed    binary, float32/64 x y z + attributes
+``.pcd``              ascii, binary, compressed    binary float64 x y z + attributes (aligned
+                                                   clouds: binary float32, or ASCII float64)
 ``.xyz .txt .pts``    text columns                 ``%.17g`` text (+ attribute columns)
 ``.las .laz``         LAS 1.0-1.4, LAZ (lazrs)     LAS/LAZ 1.4 with attributes
 ``.e57``              all scans, poses applied     --

@@ -10,7 +10,8 @@ import numpy as np
 
 from gctr_cli.io.errors import PointCloudError, clean
 
-__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "named_normals", "transform_cloud", "validate_cloud"]
+__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "eight_bit_colours", "named_normals", "transform_cloud",
+           "validate_cloud"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -107,14 +108,31 @@ def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
 def named_normals(attributes: dict[str, np.ndarray], names: tuple[str, str, str]) -> dict[str, np.ndarray]:
     """``attributes`` with a normal triple of another convention (:data:`NORMAL_NAMES`) renamed to
     ``names``, in place of the old names: PLY readers look for ``nx ny nz``, PCD readers for
-    ``normal_x normal_y normal_z``, so a cloud converted between them keeps readable normals."""
-    if all(n in attributes for n in names):
+    ``normal_x normal_y normal_z``, so a cloud converted between them keeps readable normals. Nothing
+    is renamed when any of ``names`` is taken already (a renamed column must not replace another)."""
+    if any(n in attributes for n in names):
         return dict(attributes)
     for other in NORMAL_NAMES:
         if other != names and all(n in attributes for n in other):
             renamed = dict(zip(other, names, strict=True))
             return {renamed.get(k, k): v for k, v in attributes.items()}
     return dict(attributes)
+
+
+def eight_bit_colours(attributes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``attributes`` with integer ``red``/``green``/``blue`` wider than a byte (LAS and E57 store 16
+    bits) as the 8 bits that PLY and PCD readers expect: their high byte when any value exceeds 255
+    (exact for both 16-bit conventions, ``v * 256`` and the LAS writer's ``v * 257``), else only
+    narrowed. Other attributes unchanged."""
+    out = dict(attributes)
+    rgb = [np.asarray(out.get(k)) for k in ("red", "green", "blue")]
+    if any(v.ndim != 1 or v.dtype.kind not in "ui" or v.dtype.itemsize == 1 for v in rgb):
+        return out
+    wide = max(int(v.max(initial=0)) for v in rgb) > 255
+    for k, v in zip(("red", "green", "blue"), rgb, strict=True):
+        v = v.astype(np.int64)
+        out[k] = np.clip(v >> 8 if wide else v, 0, 255).astype(np.uint8)
+    return out
 
 
 def _collinear(pts: np.ndarray) -> bool:

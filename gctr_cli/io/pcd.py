@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud, named_normals
+from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.lines import LineReader, parse_float, read_rows
 from gctr_cli.io.ply import format_columns, pack_columns
@@ -279,7 +279,8 @@ def float32_is_enough(points: np.ndarray) -> bool:
 
 def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> bytes:
     """The bytes of a PCD file: float64 x y z plus the 1-D numeric attributes in their own types
-    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float); binary, or ASCII with ``%.17g``.
+    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float, 16-bit colours as 8-bit); binary, or
+    ASCII with ``%.17g``.
     With ``float32`` the coordinates and normals are float32 (Open3D's legacy reader cannot read float64
     binary PCD files; check :func:`float32_is_enough` first). Normals are written as PCL's ``normal_x
     normal_y normal_z``."""
@@ -289,7 +290,7 @@ def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> 
     n = len(pts)
     cols: list[tuple[str, np.ndarray]] = [("x", pts[:, 0]), ("y", pts[:, 1]), ("z", pts[:, 2])]
     normal_names = ("normal_x", "normal_y", "normal_z")
-    attrs = named_normals(cloud.attributes, normal_names)
+    attrs = eight_bit_colours(named_normals(cloud.attributes, normal_names))
     if float32:  # Open3D reads float64 normals of a binary PCD as zeros too
         attrs.update({k: np.asarray(attrs[k], dtype=np.float32) for k in normal_names if k in attrs})
     if all(k in attrs for k in ("red", "green", "blue")):

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud, named_normals
+from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, quote
 from gctr_cli.io.lines import LineReader, parse_float, read_rows
 
@@ -370,11 +370,12 @@ def _skip_element(path: Path, body: bytes, el: _Element, offset: int, order: str
 
 def ply_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
     """The bytes of a PLY file: float64 x y z plus every 1-D attribute in its own type (binary little
-    endian when ``binary``, else ASCII with ``%.17g``). Normals are written as ``nx ny nz``."""
+    endian when ``binary``, else ASCII with ``%.17g``). Normals are written as ``nx ny nz``, 16-bit
+    colours as 8-bit (:func:`~gctr_cli.io.cloud.eight_bit_colours`)."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     n = len(pts)
     cols: list[tuple[str, np.ndarray]] = [("x", pts[:, 0]), ("y", pts[:, 1]), ("z", pts[:, 2])]
-    for name, values in named_normals(cloud.attributes, ("nx", "ny", "nz")).items():
+    for name, values in eight_bit_colours(named_normals(cloud.attributes, ("nx", "ny", "nz"))).items():
         v = np.asarray(values)
         if v.shape != (n,) or name in ("x", "y", "z"):
             continue
@@ -399,11 +400,19 @@ def pack_columns(cols: list[np.ndarray]) -> bytes:
     return rec.tobytes()
 
 
+#: rows formatted at a time by :func:`format_columns`
+TEXT_BLOCK_ROWS = 65536
+
+
 def format_columns(cols: list[np.ndarray]) -> bytes:
     """Text rows of the columns: floats as ``%.17g`` (exact round trip), integers as integers."""
     if not cols or len(cols[0]) == 0:
         return b""
-    as_lists = [c.tolist() for c in cols]
     fmts = ["%.17g" if c.dtype.kind == "f" else "%d" for c in cols]
     line_fmt = " ".join(fmts) + "\n"
-    return "".join(line_fmt % row for row in zip(*as_lists)).encode("ascii")
+    # in blocks, so that the Python objects of the formatting stay small next to the text itself
+    blocks = []
+    for start in range(0, len(cols[0]), TEXT_BLOCK_ROWS):
+        rows = zip(*(c[start:start + TEXT_BLOCK_ROWS].tolist() for c in cols))
+        blocks.append("".join(line_fmt % row for row in rows).encode("ascii"))
+    return b"".join(blocks)
