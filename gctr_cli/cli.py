@@ -297,6 +297,23 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     if outcome.failure in ("input", "ground_truth"):
         _die(outcome.message)
 
+    # The files first: a reader that stops early (`gctr register … | head`) must not cost them.
+    transform = outcome.transform
+    written = outcome.ok and transform is not None  # an ok outcome always carries its transform
+    if written and output is not None and transform is not None:
+        try:
+            write_matrix(output, transform)
+        except MatrixError as exc:
+            _die(str(exc))
+        logger.info("wrote %s", output)
+    if written and aligned is not None and transform is not None:
+        from gctr_cli.io import PointCloudError, write_aligned
+
+        try:
+            write_aligned(source, transform, aligned)
+        except (PointCloudError, MatrixError) as exc:
+            _die(str(exc))
+
     echo = click.echo
     echo(f"status: {outcome.status}")
     if outcome.message:
@@ -318,26 +335,12 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         echo(f"scale_err: {e.scale_err:.6g}")
         echo(f"tm_err: {e.tm_err:.6g}")
         echo(f"success: {'true' if outcome.success else 'false'}")
-
-    transform = outcome.transform
-    if not outcome.ok or transform is None:  # an ok outcome always carries its transform; never write None
+    if not written:
         for path, what in ((output, "matrix"), (aligned, "aligned cloud")):
             if path is not None:
                 click.echo(f"gctr: no {what} written to {path} (registration failed)", err=True)
         sys.exit(EXIT_FAILED)
-    if output is not None:
-        try:
-            write_matrix(output, transform)
-        except MatrixError as exc:
-            _die(str(exc))
-        logger.info("wrote %s", output)
     if aligned is not None:
-        from gctr_cli.io import PointCloudError, write_aligned
-
-        try:
-            write_aligned(source, transform, aligned)
-        except (PointCloudError, MatrixError) as exc:
-            _die(str(exc))
         echo(f"aligned: {aligned}")
 
 

@@ -627,3 +627,24 @@ def test_register_sets_up_the_allocator(runner, fake_register, four_pairs, monke
     res = invoke(runner, "register", four_pairs.root / row["source"], four_pairs.root / row["target"])
     assert res.exit_code == 0, res.output
     assert calls == [1]
+
+
+def test_register_writes_its_files_even_when_the_reader_of_its_output_stops_early(tmp_path, subprocess_env):
+    """`gctr register … -o M --aligned A | head -1`: the pipe closes before the summary is printed, and
+    the matrix and the aligned cloud must still be written (they are written before anything is printed)."""
+    rng = np.random.default_rng(3)
+    base = load_point_cloud(REPO / "data" / "models" / "bunny.ply")
+    src = base[rng.choice(len(base), 3000, replace=False)]
+    T = to_matrix(1.3, rotation([1.0, 2.0, 0.5], 35.0), np.array([0.1, -0.2, 0.05]))
+    write_cloud(tmp_path / "src.ply", src)
+    write_cloud(tmp_path / "tgt.ply", apply(T, base[rng.choice(len(base), 4000, replace=False)]))
+    cmd = [PYTHON, "-m", "gctr_cli", "register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.ply"),
+           "-o", str(tmp_path / "m.txt"), "--aligned", str(tmp_path / "al.ply")]
+    proc = subprocess.Popen(cmd, env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None
+    proc.stdout.close()  # the reader is gone before the first line
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode in (0, 1), err  # 1: click's exit code for a closed stdout
+    M = read_matrix(tmp_path / "m.txt")
+    assert transform_errors(M, T, 1.0).rot_err_deg < 1.0
+    np.testing.assert_allclose(load_point_cloud(tmp_path / "al.ply"), apply(M, src), atol=1e-9)
