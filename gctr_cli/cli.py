@@ -298,15 +298,14 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         _die(outcome.message)
 
     # The files first: a reader that stops early (`gctr register … | head`) must not cost them.
-    transform = outcome.transform
-    written = outcome.ok and transform is not None  # an ok outcome always carries its transform
-    if written and output is not None and transform is not None:
+    transform = outcome.transform if outcome.ok else None  # an ok outcome always carries its transform
+    if transform is not None and output is not None:
         try:
             write_matrix(output, transform)
         except MatrixError as exc:
             _die(str(exc))
         logger.info("wrote %s", output)
-    if written and aligned is not None and transform is not None:
+    if transform is not None and aligned is not None:
         from gctr_cli.io import PointCloudError, write_aligned
 
         try:
@@ -335,7 +334,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         echo(f"scale_err: {e.scale_err:.6g}")
         echo(f"tm_err: {e.tm_err:.6g}")
         echo(f"success: {'true' if outcome.success else 'false'}")
-    if not written:
+    if transform is None:
         for path, what in ((output, "matrix"), (aligned, "aligned cloud")):
             if path is not None:
                 click.echo(f"gctr: no {what} written to {path} (registration failed)", err=True)
