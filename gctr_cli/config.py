@@ -211,8 +211,9 @@ class EngineConfig(_Strict):
         0.4, ge=0, le=1,
         description="below this confidence of the first answer, search again from each half of the source (split "
         "at the median along its principal axes): finds an overlap that is a slab at one end of the source; "
-        "it also runs below min_confidence, so an answer is not refused without it; 0 = never (then use "
-        "min_confidence >= 0.4: the default threshold counts on this search)")
+        "it also runs below min_confidence, so an answer is not refused without it, and whatever the confidence "
+        "when no search run ended at the answer (support 0); 0 = never (then use min_confidence >= 0.4: the "
+        "default threshold counts on this search)")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")

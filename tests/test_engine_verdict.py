@@ -443,15 +443,20 @@ def test_refusal_message_states_the_share_explained_and_the_lead():
     assert message(0.50, 0.48).startswith("ambiguous: two distinct alignments")
 
 
-@pytest.mark.parametrize("first_confidence, min_confidence, halves_below, searched",
-                         [(0.37, 0.4, 0.35, True),   # would be refused: the halves run though 0.37 > 0.35
-                          (0.37, 0.2, 0.35, False),  # accepted and above source_halves_below
-                          (0.30, 0.2, 0.35, True),   # below source_halves_below
-                          (0.30, 0.4, 0.0, False)])  # source_halves_below 0 = never
+@pytest.mark.parametrize("first_confidence, min_confidence, halves_below, support, searched",
+                         [(0.37, 0.4, 0.35, 1.0, True),   # would be refused: the halves run though 0.37 > 0.35
+                          (0.37, 0.2, 0.35, 1.0, False),  # accepted and above source_halves_below
+                          (0.30, 0.2, 0.35, 1.0, True),   # below source_halves_below
+                          (0.30, 0.4, 0.0, 1.0, False),   # source_halves_below 0 = never
+                          (0.90, 0.2, 0.35, 0.0, True),   # confident, but no search run ended at the answer
+                          (0.90, 0.2, 0.35, 0.05, False),  # confident and supported
+                          (0.90, 0.2, 0.0, 0.0, False)])  # 0 = never, support or not
 def test_an_answer_is_not_refused_without_the_search_from_the_halves(monkeypatch, first_confidence, min_confidence,
-                                                                     halves_below, searched):
+                                                                     halves_below, support, searched):
     """The second search (from each half of the source) runs below ``source_halves_below`` and below
-    ``min_confidence``: an answer the threshold would refuse always gets it (0 turns it off)."""
+    ``min_confidence``: an answer the threshold would refuse always gets it (0 turns it off). It also
+    runs for a confident answer that no search run ended at (support 0): on a fresh generator seed
+    such an answer was a half-turned part-in-whole pair at confidence 0.71, which the halves found."""
     from gctr_cli.engine import gctr
     from gctr_cli.engine.verdict import Verdict
 
@@ -459,7 +464,7 @@ def test_an_answer_is_not_refused_without_the_search_from_the_halves(monkeypatch
 
     def fake_decide(pool, *args, **kwargs):
         return pool[0].transform, Verdict(confidence=first_confidence, score=0.3, rival_score=0.2,
-                                          agreement=Agreement(0.3, 0.3), support=1.0)
+                                          agreement=Agreement(0.3, 0.3), support=support)
 
     def fake_halves(*args, **kwargs):
         calls.append(1)

@@ -22,7 +22,8 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    early once two hypotheses settle on the same well-supported transform, or one hypothesis alone
    explains most of both clouds;
 4b. when the verdict (5) on those candidates is unsure (confidence below ``source_halves_below``, and
-   below ``min_confidence`` whatever that is: an answer is not refused without it), the
+   below ``min_confidence`` whatever that is: an answer is not refused without it) or its answer has no
+   support (no search run ended within the distinct distance of it), the
    search again from each half of the source (:mod:`~gctr_cli.engine.halves`: an overlap that is a slab
    at one end of the source), and the verdict decides among all candidates;
 5. verdict (:mod:`~gctr_cli.engine.decide`, measures in :mod:`~gctr_cli.engine.verdict`): the best
@@ -142,9 +143,12 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     if candidates:
         T_n, verdict = judge(candidates)
     halves_below = max(cfg.source_halves_below, cfg.min_confidence) if cfg.source_halves_below > 0 else 0.0
-    if verdict is None or verdict.confidence < halves_below:
-        # The first search left the answer in doubt (or would be refused): search again from each half
-        # of the source (an overlap that is a slab at one end of it), and decide among all candidates.
+    if verdict is None or verdict.confidence < halves_below or (halves_below > 0 and verdict.support == 0):
+        # The first search left the answer in doubt (or would be refused), or no search run ended at the
+        # answer (its refinement carried a candidate a long way: a confident answer that nothing else
+        # supports was a half-turn of a part-in-whole pair, measured in docs/how-it-works.md): search
+        # again from each half of the source (an overlap that is a slab at one end of it), and decide
+        # among all candidates.
         extra = half_candidates(ns.points, src, tgt, bounds_n, cfg, seed, timer)
         if extra:
             candidates = candidates + extra
