@@ -189,10 +189,6 @@ class VerdictConfig(_Strict):
                     "this much of an agreeing point; 0 = off")
     conflict_ratio: float = Field(
         0.1, gt=0, lt=1, description="... 'near': distance / robust diameter of the smaller cloud")
-    two_way: bool = Field(
-        True, description="an answer refused for low confidence is registered again the other way round (target "
-                          "onto source); when that ends at the same alignment, the confidence is the smaller of the "
-                          "two directions' leads over their best distinct rivals (not floored at 0), / full_margin")
 
 
 class EngineConfig(_Strict):

@@ -473,86 +473,9 @@ def test_an_answer_is_not_refused_without_the_search_from_the_halves(monkeypatch
     monkeypatch.setattr(gctr, "decide", fake_decide)
     monkeypatch.setattr(gctr, "half_candidates", fake_halves)
     pair, _ = make_part_pair(_model("bunny"), np.random.default_rng(0), patch_is_source=True, n_source=4000)
-    cfg = EngineConfig(min_confidence=min_confidence, source_halves_below=halves_below, verdict={"two_way": False})
+    cfg = EngineConfig(min_confidence=min_confidence, source_halves_below=halves_below)
     res = gctr.register(pair.source, pair.target, cfg, seed=0)
     assert bool(calls) == searched
     assert res.confidence == first_confidence
     if first_confidence < min_confidence:
         assert res.status == "failed" and f"threshold {min_confidence:.2f}" in res.message, res.message
-
-
-# ------------------------------------------------------------------------------ the two-way check
-#: the forward answer of the two-way cases (normalised clouds of size 1: normalised = original coordinates)
-_T_FORWARD = np.eye(4)
-_T_FORWARD[:3, :3] = 1.3 * Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
-_T_FORWARD[:3, 3] = [0.1, -0.2, 0.3]
-_HALF_TURN = np.diag([-1.0, -1.0, 1.0, 1.0])
-
-
-def _two_way_case(monkeypatch, score: float, rival: float, reverse: np.ndarray | None, reverse_lead: float = 0.0,
-                  two_way: bool = True):
-    """``gctr._two_way`` on the forward answer ``_T_FORWARD`` with ``score`` / ``rival``, the reverse
-    registration replaced by one that returns ``reverse`` with a lead of ``reverse_lead`` over its rival
-    (None: it found nothing). Returns the verdict, the note, the reverse lead, the reverse runs' configs
-    and the stage timings."""
-    from gctr_cli.engine import gctr
-    from gctr_cli.engine.prepare import StageTimer
-    from gctr_cli.engine.preprocess import NormalisedCloud
-    from gctr_cli.engine.result import RegistrationResult
-    from gctr_cli.engine.verdict import Verdict
-
-    cfg = EngineConfig(verdict={"two_way": two_way})
-    calls: list[EngineConfig] = []
-
-    def fake_register(source, target, config, seed):
-        calls.append(config)
-        evidence = {} if reverse is None else {"score": 0.1 + reverse_lead, "rival_score": 0.1}
-        T = np.eye(4) if reverse is None else reverse
-        return RegistrationResult(transform=T, scale=1.0, rotation=T[:3, :3], translation=T[:3, 3], fitness=0.5,
-                                  inlier_rmse=0.0, n_inliers=10, iterations=1, status="failed", message="",
-                                  runtime_s=0.0, seed=seed, timings={"refine": 1.0}, evidence=evidence)
-
-    monkeypatch.setattr(gctr, "register", fake_register)
-    sample = np.random.default_rng(0).uniform(-0.5, 0.5, size=(500, 3))
-    unit = NormalisedCloud(points=sample, centre=np.zeros(3), size=1.0)
-    verdict = Verdict(confidence=confidence(score, rival, cfg.verdict.full_margin), score=score, rival_score=rival,
-                      agreement=Agreement(0.1, 0.1), support=1.0)
-    timer = StageTimer({})
-    verdict, note, lead = gctr._two_way(sample, sample, _T_FORWARD, verdict, unit, unit, sample, cfg, 3, timer)
-    return verdict, note, lead, calls, timer.timings
-
-
-def test_two_way_check_raises_the_confidence_when_the_reverse_registration_agrees(monkeypatch):
-    """A right answer on a noisy LiDAR window can lead its rival and still score below 0 (confidence 0).
-    When the target-onto-source registration ends at the same alignment, the confidence is the smaller
-    of the two leads over the full margin: min(0.09, 0.06) / 0.25 = 0.24."""
-    same = np.linalg.inv(_T_FORWARD)
-    verdict, note, lead, calls, timings = _two_way_case(monkeypatch, -0.01, -0.10, same, 0.06)
-    assert verdict.confidence == pytest.approx(0.24) and note == "" and lead == pytest.approx(0.06)
-    assert len(calls) == 1 and calls[0].verdict.two_way is False  # the reverse run does not check again
-    assert timings["refine"] == 1.0  # the reverse run's time is booked to its stages
-    # the reverse direction leads by less: raised to 0.02 / 0.25 only, and the note says why
-    verdict, note, *_ = _two_way_case(monkeypatch, -0.01, -0.10, same, 0.02)
-    assert verdict.confidence == pytest.approx(0.08)
-    assert note == "; the reverse registration ends at the same alignment but leads its rival by only 0.02"
-    # the same alignment up to a small error still counts: 1 degree about z
-    nudged = same.copy()
-    nudged[:3, :3] = nudged[:3, :3] @ Rotation.from_euler("z", 1, degrees=True).as_matrix()
-    assert _two_way_case(monkeypatch, -0.01, -0.10, nudged, 0.06)[0].confidence == pytest.approx(0.24)
-
-
-def test_two_way_check_refuses_what_the_reverse_registration_does_not_confirm(monkeypatch):
-    """A half-turn that only one direction prefers, a reverse run that finds nothing, a lead too small to
-    reach the threshold (the reverse run is then skipped) and the switch turned off: no change."""
-    turned = np.linalg.inv(_T_FORWARD @ _HALF_TURN)
-    verdict, note, lead, calls, _ = _two_way_case(monkeypatch, 0.03, -0.06, turned, 0.10)
-    assert verdict.confidence == pytest.approx(0.12) and np.isnan(lead) and len(calls) == 1
-    assert note == "; the reverse registration (target onto source) ends at a different alignment"
-    verdict, note, *_ = _two_way_case(monkeypatch, 0.03, -0.06, None)
-    assert verdict.confidence == pytest.approx(0.12) and "found no alignment" in note
-    # lead 0.03 < 0.15 x 0.25: the confidence could not reach the threshold, so no reverse run
-    verdict, note, lead, calls, _ = _two_way_case(monkeypatch, 0.0, -0.03, np.linalg.inv(_T_FORWARD), 0.10)
-    assert calls == [] and verdict.confidence == 0.0 and note == "" and np.isnan(lead)
-    verdict, note, lead, calls, _ = _two_way_case(monkeypatch, -0.01, -0.10, np.linalg.inv(_T_FORWARD), 0.06,
-                                                  two_way=False)
-    assert calls == [] and verdict.confidence == 0.0

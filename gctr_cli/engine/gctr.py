@@ -33,10 +33,7 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    confidence is its lead over the best distinct rival;
 6. the transform is composed back into the original coordinates and checked (inliers, fitness,
    scale bounds, confidence ≥ ``min_confidence``) — weak or ambiguous evidence gives
-   ``status='failed'`` with a message rather than a silently wrong matrix. An answer refused for low
-   confidence that leads its rival by enough is first registered the other way round (target onto
-   source, :func:`_two_way`): when that independent search ends at the same alignment, the smaller of
-   the two leads is the confidence.
+   ``status='failed'`` with a message rather than a silently wrong matrix.
 
 Stages 1-2 for each cloud are in :mod:`~gctr_cli.engine.prepare`. All random draws come from
 generators spawned from ``seed``.
@@ -45,7 +42,7 @@ generators spawned from ``seed``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -165,7 +162,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     T = denormalise(T_n, ns, nt)
     scale, rotation, translation = split(T)
     lo, hi = cfg.scale_bounds
-    status, message, reverse_lead = "ok", "", float("nan")
+    status, message = "ok", ""
     if best.n_inliers < cfg.ransac.min_inliers:
         status, message = "failed", (f"too weak evidence: {best.n_inliers} RANSAC inliers "
                                      f"(need {cfg.ransac.min_inliers})")
@@ -174,10 +171,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
     elif not lo <= scale <= hi:
         status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
     elif verdict.confidence < cfg.min_confidence:
-        verdict, note, reverse_lead = _two_way(source, target, T_n, verdict, ns, nt, src.surface.sample, cfg,
-                                               seed, timer)
-        if verdict.confidence < cfg.min_confidence:
-            status, message = "failed", refusal_message(verdict, cfg) + note
+        status, message = "failed", refusal_message(verdict, cfg)
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
@@ -186,46 +180,8 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         evidence={"score": verdict.score, "rival_score": verdict.rival_score,
                   "source_agreement": verdict.agreement.source, "target_agreement": verdict.agreement.target,
                   "source_conflict": verdict.agreement.conflict_source,
-                  "target_conflict": verdict.agreement.conflict_target, "support": verdict.support,
-                  "reverse_lead": reverse_lead},
+                  "target_conflict": verdict.agreement.conflict_target, "support": verdict.support},
     )
-
-
-def _two_way(source: np.ndarray, target: np.ndarray, T_n: np.ndarray, verdict: Verdict,
-             ns: NormalisedCloud, nt: NormalisedCloud, sample: np.ndarray, cfg: EngineConfig, seed: int,
-             timer: StageTimer) -> tuple[Verdict, str, float]:
-    """Second evidence for an answer the verdict would refuse: register the pair the other way round.
-
-    On sparse, noisy scans (outdoor LiDAR windows) the right alignment can lead every distinct rival and
-    still score below 0, which the plain confidence does not count as evidence. The reverse registration
-    (target onto source: other salient triangles, other overlap hypotheses) is an independent search; when
-    it ends at the same alignment (within ``verdict.distinct_ratio``), the answer's confidence becomes the
-    smaller of the two directions' leads over their best distinct rivals, not floored at 0, over
-    ``verdict.full_margin``. A half-turn that one direction prefers is not found by the other; a
-    symmetric shape that both prefer still needs a lead in both. Run only when that confidence could reach
-    ``min_confidence``. Returns the verdict (confidence raised or not), a note for the refusal message and
-    the reverse direction's lead (NaN when it did not run or ended elsewhere).
-    """
-    v = cfg.verdict
-    lead = verdict.score - verdict.rival_score
-    if not v.two_way or lead < cfg.min_confidence * v.full_margin:
-        return verdict, "", float("nan")
-    reverse_cfg = cfg.model_copy(update={"verdict": v.model_copy(update={"two_way": False})})
-    reverse = register(target, source, reverse_cfg, seed)
-    for stage, seconds in reverse.timings.items():
-        timer.timings[stage] = timer.timings.get(stage, 0.0) + seconds
-    if "score" not in reverse.evidence:
-        return verdict, "; the reverse registration (target onto source) found no alignment", float("nan")
-    moved = displacement(T_n, _normalised(np.linalg.inv(reverse.transform), ns, nt), sample)
-    if moved > v.distinct_ratio:
-        return verdict, "; the reverse registration (target onto source) ends at a different alignment", float("nan")
-    reverse_lead = reverse.evidence["score"] - reverse.evidence["rival_score"]
-    both = float(np.clip(min(lead, reverse_lead) / v.full_margin, 0.0, 1.0))
-    if both <= verdict.confidence:
-        return verdict, "", reverse_lead
-    note = (f"; the reverse registration ends at the same alignment but leads its rival by only "
-            f"{reverse_lead:.2f}" if both < cfg.min_confidence and reverse_lead < lead else "")
-    return replace(verdict, confidence=both), note, reverse_lead
 
 
 def _prepared_pair(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, timer: StageTimer,
