@@ -189,6 +189,15 @@ class VerdictConfig(_Strict):
                     "this much of an agreeing point; 0 = off")
     conflict_ratio: float = Field(
         0.1, gt=0, lt=1, description="... 'near': distance / robust diameter of the smaller cloud")
+    height_weight: float = Field(
+        0.5, ge=0, le=2,
+        description="confidence: weight of the relief agreement over the target's dominant plane "
+                    "(gctr_cli.engine.height) in a second lead, which can only raise the confidence; 0 = off")
+    height_full_margin: float = Field(
+        0.5, gt=0, le=2, description="... that lead at which the confidence reaches 1")
+    height_cell_ratio: float = Field(0.04, gt=0, lt=1, description="... its cells' side / robust target diameter")
+    height_tolerance_ratio: float = Field(
+        0.01, gt=0, lt=1, description="... heights within this (/ robust target diameter) agree")
 
 
 class EngineConfig(_Strict):

@@ -11,6 +11,7 @@ from itertools import islice
 import numpy as np
 
 from gctr_cli.config import EngineConfig
+from gctr_cli.engine.height import HeightMap
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer
 from gctr_cli.engine.refine import scaled_point_to_plane_icp, trimmed_scaled_icp
 from gctr_cli.engine.search import Candidate
@@ -152,14 +153,40 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     def rival(T: np.ndarray) -> bool:
         return shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio
 
-    rivals = [a.score for T, a in refined[1:] if rival(T)]
+    rivals = [(T, a) for T, a in refined[1:] if rival(T)]
     unrefined = islice((T for T, _ in pool if rival(T)), v.rival_pool)
-    rivals += [tight_agreement(T, src_ref, tgt_ref, test).score for T in unrefined]
-    rival_score = max(rivals, default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
+    rivals += [(T, tight_agreement(T, src_ref, tgt_ref, test)) for T in unrefined]
+    rival_score = max((a.score for _, a in rivals), default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
     support = sum(not distinct(T_answer, c.transform) for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)
-    return T_answer, Verdict(confidence=conf, score=agreement.score, rival_score=rival_score, agreement=agreement,
-                             support=support / max(len(candidates), 1))
+    relief = (relief_confidence(T_answer, agreement, rivals, src_ref, tgt_ref, test, cfg)
+              if v.height_weight > 0 and conf < 1.0 else 0.0)
+    return T_answer, Verdict(confidence=max(conf, relief), score=agreement.score, rival_score=rival_score,
+                             agreement=agreement, support=support / max(len(candidates), 1), relief_confidence=relief)
+
+
+def relief_confidence(T_answer: np.ndarray, agreement: Agreement, rivals: list[tuple[np.ndarray, Agreement]],
+                      src_ref: RefinementCloud, tgt_ref: RefinementCloud, test: TightTest,
+                      cfg: EngineConfig) -> float:
+    """The answer's confidence when the relief over the target's dominant plane counts as well
+    (:mod:`gctr_cli.engine.height`): each score plus ``verdict.height_weight`` times its relief
+    agreement, the lead measured against ``verdict.height_full_margin``. The relief is coarse (cells
+    of ``verdict.height_cell_ratio``): it tells *which* alignment is right, where noisy structure
+    leaves the surface agreement of the right one no better than a wrong one's (outdoor LiDAR), but
+    not how precise it is — so it never chooses the answer, and counts against a wider margin. 0 when
+    the target has no relief."""
+    v = cfg.verdict
+    heights = HeightMap.build(tgt_ref.points, tgt_ref.normals, 2 * test.distance, v.height_cell_ratio,
+                              v.height_tolerance_ratio)
+    if heights is None:
+        return 0.0
+
+    def with_relief(T: np.ndarray, a: Agreement) -> float:
+        moved = src_ref.points @ T[:3, :3].T + T[:3, 3]
+        return a.score + v.height_weight * heights.agreement(moved, test.conflict_weight)
+
+    rival_score = max((with_relief(T, a) for T, a in rivals), default=0.0)
+    return confidence(with_relief(T_answer, agreement), rival_score, v.height_full_margin)
 
 
 def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
@@ -167,21 +194,25 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     rival scores nearly as much on a well-explained pair (the answer puts at least
     ``AMBIGUITY_MIN_AGREEMENT`` of the two surfaces on each other), else *low confidence* with how much
     of the data the best alignment explains and by how many points of score it leads (or that it lays
-    more of the clouds beside each other than on each other). The confidence is shown truncated to two
-    decimals, so that a refused answer never reads as reaching the threshold."""
+    more of the clouds beside each other than on each other), and what the relief evidence gave, when it
+    gave anything (:func:`relief_confidence`). The confidence is shown truncated to two decimals, so
+    that a refused answer never reads as reaching the threshold."""
     shown = f"{np.floor(verdict.confidence * 100) / 100:.2f}"
     scores = f"score {verdict.score:.2f} vs {verdict.rival_score:.2f}"
+    relief = ("" if verdict.relief_confidence <= 0 else
+              f"; the relief over the target's dominant plane backs it to "
+              f"{np.floor(verdict.relief_confidence * 100) / 100:.2f}")
     explained = 0.5 * (verdict.agreement.source + verdict.agreement.target)
     lead = verdict.score - verdict.rival_score
     if (verdict.score > 0 and verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score
             and explained >= AMBIGUITY_MIN_AGREEMENT):
         return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
-                f"confidence {shown}, threshold {cfg.min_confidence:.2f})")
+                f"confidence {shown}, threshold {cfg.min_confidence:.2f}){relief}")
     head = (f"low confidence {shown} (threshold {cfg.min_confidence:.2f}): the best alignment explains "
             f"{100 * explained:.0f}% of the two surfaces")
     if verdict.score <= 0:
-        return f"{head} and lays as much of them or more beside each other ({scores})"
+        return f"{head} and lays as much of them or more beside each other ({scores}){relief}"
     points = round(100 * lead)
     margin = ("scores no more than" if points <= 0 else
               f"scores only {points} point{'' if points == 1 else 's'} more than")
-    return f"{head} and {margin} a distinct alternative ({scores})"
+    return f"{head} and {margin} a distinct alternative ({scores}){relief}"

@@ -180,7 +180,8 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None
         evidence={"score": verdict.score, "rival_score": verdict.rival_score,
                   "source_agreement": verdict.agreement.source, "target_agreement": verdict.agreement.target,
                   "source_conflict": verdict.agreement.conflict_source,
-                  "target_conflict": verdict.agreement.conflict_target, "support": verdict.support},
+                  "target_conflict": verdict.agreement.conflict_target, "support": verdict.support,
+                  "relief_confidence": verdict.relief_confidence},
     )
 
 

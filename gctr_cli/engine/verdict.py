@@ -250,6 +250,7 @@ class Verdict:
     rival_score: float  # best score among distinct alternatives (as computed, so it can be negative; 0 if none)
     agreement: Agreement
     support: float  # share of the independent overlap searches that ended at the answer
+    relief_confidence: float = 0.0  # the confidence the relief over the target's dominant plane gives (decide)
 
 
 def confidence(score: float, rival_score: float, full_margin: float) -> float:
