@@ -24,6 +24,7 @@ from gctr_cli.engine.verdict import (
     shared_displacement,
     surface_agreement,
 )
+from gctr_cli.geometry import apply
 
 #: below this share of the two surfaces explained (the plain agreement), a refused answer explains too
 #: little to call the data "ambiguous"
@@ -182,8 +183,7 @@ def relief_confidence(T_answer: np.ndarray, agreement: Agreement, rivals: list[t
         return 0.0
 
     def with_relief(T: np.ndarray, a: Agreement) -> float:
-        moved = src_ref.points @ T[:3, :3].T + T[:3, 3]
-        return a.score + v.height_weight * heights.agreement(moved, test.conflict_weight)
+        return a.score + v.height_weight * heights.agreement(apply(T, src_ref.points), test.conflict_weight)
 
     rival_score = max((with_relief(T, a) for T, a in rivals), default=0.0)
     return confidence(with_relief(T_answer, agreement), rival_score, v.height_full_margin)
