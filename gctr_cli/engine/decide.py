@@ -189,6 +189,12 @@ def relief_confidence(T_answer: np.ndarray, agreement: Agreement, rivals: list[t
     return confidence(with_relief(T_answer, agreement), rival_score, v.height_full_margin)
 
 
+def _truncated(value: float) -> str:
+    """``value`` with two decimals, truncated (not rounded): a confidence just below a threshold never
+    reads as reaching it."""
+    return f"{np.floor(value * 100) / 100:.2f}"
+
+
 def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     """Why an answer below the confidence threshold is refused, in words: *ambiguous* when a distinct
     rival scores nearly as much on a well-explained pair (the answer puts at least
@@ -197,11 +203,10 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     more of the clouds beside each other than on each other), and what the relief evidence gave, when it
     gave anything (:func:`relief_confidence`). The confidence is shown truncated to two decimals, so
     that a refused answer never reads as reaching the threshold."""
-    shown = f"{np.floor(verdict.confidence * 100) / 100:.2f}"
+    shown = _truncated(verdict.confidence)
     scores = f"score {verdict.score:.2f} vs {verdict.rival_score:.2f}"
     relief = ("" if verdict.relief_confidence <= 0 else
-              f"; the relief over the target's dominant plane backs it to "
-              f"{np.floor(verdict.relief_confidence * 100) / 100:.2f}")
+              f"; the relief over the target's dominant plane backs it to {_truncated(verdict.relief_confidence)}")
     explained = 0.5 * (verdict.agreement.source + verdict.agreement.target)
     lead = verdict.score - verdict.rival_score
     if (verdict.score > 0 and verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score
