@@ -198,6 +198,10 @@ class VerdictConfig(_Strict):
     height_cell_ratio: float = Field(0.04, gt=0, lt=1, description="... its cells' side / robust target diameter")
     height_tolerance_ratio: float = Field(
         0.01, gt=0, lt=1, description="... heights within this (/ robust target diameter) agree")
+    slide_steps: tuple[float, ...] = Field(
+        (0.1, 0.2),
+        description="an answer short of confidence 1 is also tried slid both ways by these shares of the smaller "
+                    "cloud along the direction its surface contact constrains least, refined; [] = off")
 
 
 class EngineConfig(_Strict):

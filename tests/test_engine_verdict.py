@@ -479,3 +479,31 @@ def test_an_answer_is_not_refused_without_the_search_from_the_halves(monkeypatch
     assert res.confidence == first_confidence
     if first_confidence < min_confidence:
         assert res.status == "failed" and f"threshold {min_confidence:.2f}" in res.message, res.message
+
+
+def test_an_answer_is_slid_along_the_direction_its_contact_leaves_free():
+    """A floor (z = 0) and a wall (x = 0) pin z and x; the answer is slid both ways along y only,
+    by each configured step times the smaller cloud's size."""
+    from types import SimpleNamespace
+
+    from scipy.spatial import cKDTree
+
+    from gctr_cli.engine.decide import slid_transforms
+
+    g = np.linspace(0.0, 1.0, 21)
+    a, b = (m.ravel() for m in np.meshgrid(g, g))
+    floor = np.column_stack([a, b, np.zeros_like(a)])
+    wall = np.column_stack([np.zeros_like(a), a, b])
+    points = np.vstack([floor, wall])
+    normals = np.vstack([np.tile([0.0, 0.0, 1.0], (len(floor), 1)), np.tile([1.0, 0.0, 0.0], (len(wall), 1))])
+    cloud = SimpleNamespace(points=points, normals=normals, tree=cKDTree(points))
+    T = np.diag([0.5, 0.5, 0.5, 1.0])  # scale 0.5: the smaller cloud's size is 0.5
+    T[:3, 3] = [0.1, 0.2, 0.0]
+    moved_back = SimpleNamespace(points=(points - T[:3, 3]) / 0.5)  # the source lands exactly on the target
+    shifted = slid_transforms(T, moved_back, cloud, 0.01, (0.1, 0.2))
+    steps = sorted(float((S[:3, 3] - T[:3, 3]) @ [0.0, 1.0, 0.0]) for S in shifted)
+    assert steps == pytest.approx([-0.1, -0.05, 0.05, 0.1])
+    for S in shifted:
+        assert np.allclose(S[:3, :3], T[:3, :3])
+        assert abs(S[0, 3] - T[0, 3]) < 1e-9 and abs(S[2, 3] - T[2, 3]) < 1e-9
+    assert slid_transforms(T, SimpleNamespace(points=points + 5.0), cloud, 0.01, (0.1,)) == []

@@ -126,7 +126,9 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     are refined and compared by their score at the verdict's tight tolerances (agreement less
     conflicts), so that no transform wins by precision alone. The best is the answer; the confidence
     weighs its score against the best rival's (a rival aligns the data the answer aligns differently:
-    :func:`shared_displacement`)."""
+    :func:`shared_displacement`). An answer short of confidence 1 is also tried slid along the
+    direction its surface contact leaves free (:func:`slid_transforms`, ``verdict.slide_steps``): two
+    low-overlap room fragments can slide along a wall, and a wrong slide is found there or refused."""
     v = cfg.verdict
     pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
     pool.sort(key=lambda item: -item[1].score)
@@ -142,8 +144,52 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             if len(finalists) == v.refined_finalists:
                 break
     test = tight_test(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
-    refined = sorted((_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists),
-                     key=lambda x: -x[1].score)
+    refined = [_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists]
+    T_answer, verdict = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test)
+    if v.slide_steps and verdict.confidence < 1.0:
+        # An answer that is not clearly ahead: try it slid both ways along the direction its surface
+        # contact constrains least (a wall or a floor lets a low-overlap pair slide along it), refined.
+        # Those that end at a different alignment (a rival by the shared-data test) join the finalists
+        # and the verdict chooses again; those that return to the answer are dropped, so that the
+        # slides never just polish the answer's own score.
+        shared = SharedData.of(T_answer, src_ref.surface, tgt_ref.surface, cfg.inlier_distance_ratio)
+        slid = [(T, a) for T, a in (_refine(T_s, src_ref, tgt_ref, cfg, bounds_n, timer, test)
+                                    for T_s in slid_transforms(T_answer, src_ref, tgt_ref, test.distance,
+                                                               v.slide_steps))
+                if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
+        if slid:
+            T_answer, verdict = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test)
+    return T_answer, verdict
+
+
+def slid_transforms(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, distance: float,
+                    steps: tuple[float, ...]) -> list[np.ndarray]:
+    """``T`` shifted both ways by each of ``steps`` (× the smaller cloud's size) along the translation
+    its point-to-plane contact constrains least: the eigenvector of the smallest eigenvalue of the sum
+    of ``n nᵀ`` over the target normals of the moved source points within ``distance`` of the target.
+    Empty when fewer than three points are in contact."""
+    d, j = tgt_ref.tree.query(apply(T, src_ref.points), distance_upper_bound=distance)
+    normals = tgt_ref.normals[j[np.isfinite(d)]]
+    if len(normals) < 3:
+        return []
+    direction = np.linalg.eigh(normals.T @ normals)[1][:, 0]
+    size = smaller_cloud(similarity_scale(T))
+    shifted = []
+    for step in steps:
+        for sign in (-1.0, 1.0):
+            T_s = T.copy()
+            T_s[:3, 3] += sign * step * size * direction
+            shifted.append(T_s)
+    return shifted
+
+
+def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.ndarray, Agreement]],
+            candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
+            cfg: EngineConfig, test: TightTest) -> tuple[np.ndarray, Verdict]:
+    """The best of the ``refined`` finalists by tight score, and the verdict on it."""
+    v = cfg.verdict
+    sample = src.surface.sample
+    refined = sorted(refined, key=lambda x: -x[1].score)
     T_answer, agreement = refined[0]
     # Rivals: the other refined finalists, and (unrefined, so at a disadvantage) the best of the
     # rest of the pool — finalists can converge onto the answer when refined. A rival must align the
@@ -158,7 +204,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     unrefined = islice((T for T, _ in pool if rival(T)), v.rival_pool)
     rivals += [(T, tight_agreement(T, src_ref, tgt_ref, test)) for T in unrefined]
     rival_score = max((a.score for _, a in rivals), default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
-    support = sum(not distinct(T_answer, c.transform) for c in candidates)
+    support = sum(displacement(T_answer, c.transform, sample) <= v.distinct_ratio for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)
     relief = (relief_confidence(T_answer, agreement, rivals, src_ref, tgt_ref, test, cfg)
               if v.height_weight > 0 and conf < 1.0 else 0.0)

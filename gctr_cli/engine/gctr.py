@@ -30,7 +30,8 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    few *distinct* transforms the search saw are refined (scaled point-to-plane ICP on the working
    clouds, or finer ones with ``refine.voxel_ratio``) and compared by surface agreement (proximity
    with agreeing normals, both directions) at tight tolerances; the best is the answer, and the
-   confidence is its lead over the best distinct rival;
+   confidence is its lead over the best distinct rival (an answer short of confidence 1 is also tried
+   slid both ways along the direction its surface contact leaves free, refined, and the choice made again);
 6. the transform is composed back into the original coordinates and checked (inliers, fitness,
    scale bounds, confidence ≥ ``min_confidence``) — weak or ambiguous evidence gives
    ``status='failed'`` with a message rather than a silently wrong matrix.
