@@ -145,20 +145,19 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
                 break
     test = tight_test(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
     refined = [_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists]
-    T_answer, verdict = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test)
+    T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test)
     if v.slide_steps and verdict.confidence < 1.0:
         # An answer that is not clearly ahead: try it slid both ways along the direction its surface
         # contact constrains least (a wall or a floor lets a low-overlap pair slide along it), refined.
         # Those that end at a different alignment (a rival by the shared-data test) join the finalists
         # and the verdict chooses again; those that return to the answer are dropped, so that the
         # slides never just polish the answer's own score.
-        shared = SharedData.of(T_answer, src_ref.surface, tgt_ref.surface, cfg.inlier_distance_ratio)
         slid = [(T, a) for T, a in (_refine(T_s, src_ref, tgt_ref, cfg, bounds_n, timer, test)
                                     for T_s in slid_transforms(T_answer, src_ref, tgt_ref, test.distance,
                                                                v.slide_steps))
                 if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
         if slid:
-            T_answer, verdict = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test)
+            T_answer, verdict, _ = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test)
     return T_answer, verdict
 
 
@@ -185,8 +184,9 @@ def slid_transforms(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: Refinement
 
 def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.ndarray, Agreement]],
             candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
-            cfg: EngineConfig, test: TightTest) -> tuple[np.ndarray, Verdict]:
-    """The best of the ``refined`` finalists by tight score, and the verdict on it."""
+            cfg: EngineConfig, test: TightTest) -> tuple[np.ndarray, Verdict, SharedData]:
+    """The best of the ``refined`` finalists by tight score, the verdict on it, and the data it aligns
+    (what a rival must move differently)."""
     v = cfg.verdict
     sample = src.surface.sample
     refined = sorted(refined, key=lambda x: -x[1].score)
@@ -209,7 +209,8 @@ def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.nda
     relief = (relief_confidence(T_answer, agreement, rivals, src_ref, tgt_ref, test, cfg)
               if v.height_weight > 0 and conf < 1.0 else 0.0)
     return T_answer, Verdict(confidence=max(conf, relief), score=agreement.score, rival_score=rival_score,
-                             agreement=agreement, support=support / max(len(candidates), 1), relief_confidence=relief)
+                             agreement=agreement, support=support / max(len(candidates), 1),
+                             relief_confidence=relief), shared
 
 
 def relief_confidence(T_answer: np.ndarray, agreement: Agreement, rivals: list[tuple[np.ndarray, Agreement]],
