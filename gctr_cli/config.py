@@ -203,6 +203,13 @@ class VerdictConfig(_Strict):
         description="an answer short of confidence 1 is also tried slid both ways by these shares of the smaller "
                     "cloud along the direction its surface contact constrains least, refined; [] = off")
 
+    @field_validator("slide_steps")
+    @classmethod
+    def _slide_range(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if any(not 0.0 < v < 1.0 for v in value):
+            raise ValueError("slide_steps must be shares of the smaller cloud in (0, 1) (each is tried both ways)")
+        return value
+
 
 class EngineConfig(_Strict):
     """All parameters of the GCTR engine."""

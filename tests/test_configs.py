@@ -32,3 +32,13 @@ def test_scene_config_only_raises_the_threshold():
     default = Config()
     same_threshold = scene.engine.model_copy(update={"min_confidence": default.engine.min_confidence})
     assert scene.model_copy(update={"engine": same_threshold}) == default
+
+
+def test_slide_steps_must_be_shares_of_the_smaller_cloud():
+    from gctr_cli.config import config_from_dict
+    from gctr_cli.config import ConfigError
+
+    assert config_from_dict({"engine": {"verdict": {"slide_steps": []}}}).engine.verdict.slide_steps == ()
+    for bad in ([0.0], [-0.1], [0.1, 1.5]):
+        with pytest.raises(ConfigError, match=r"engine\.verdict\.slide_steps.*\(0, 1\)"):
+            config_from_dict({"engine": {"verdict": {"slide_steps": bad}}})
