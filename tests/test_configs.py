@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from gctr_cli.config import Config, load_config
+from gctr_cli.config import Config, ConfigError, config_from_dict, load_config
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -35,9 +35,6 @@ def test_scene_config_only_raises_the_threshold():
 
 
 def test_slide_steps_must_be_shares_of_the_smaller_cloud():
-    from gctr_cli.config import config_from_dict
-    from gctr_cli.config import ConfigError
-
     assert config_from_dict({"engine": {"verdict": {"slide_steps": []}}}).engine.verdict.slide_steps == ()
     for bad in ([0.0], [-0.1], [0.1, 1.5]):
         with pytest.raises(ConfigError, match=r"engine\.verdict\.slide_steps.*\(0, 1\)"):
