@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import typing
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -198,17 +198,10 @@ class VerdictConfig(_Strict):
     height_cell_ratio: float = Field(0.04, gt=0, lt=1, description="... its cells' side / robust target diameter")
     height_tolerance_ratio: float = Field(
         0.01, gt=0, lt=1, description="... heights within this (/ robust target diameter) agree")
-    slide_steps: tuple[float, ...] = Field(
+    slide_steps: tuple[Annotated[float, Field(gt=0, lt=1)], ...] = Field(
         (0.1, 0.2),
         description="an answer short of confidence 1 is also tried slid both ways by these shares of the smaller "
                     "cloud along the direction its surface contact constrains least, refined; [] = off")
-
-    @field_validator("slide_steps")
-    @classmethod
-    def _slide_range(cls, value: tuple[float, ...]) -> tuple[float, ...]:
-        if any(not 0.0 < v < 1.0 for v in value):
-            raise ValueError("slide_steps must be shares of the smaller cloud in (0, 1) (each is tried both ways)")
-        return value
 
 
 class EngineConfig(_Strict):
