@@ -4,7 +4,9 @@ is the confidence (:mod:`gctr_cli.engine.verdict` has the measures)."""
 
 from __future__ import annotations
 
+import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import islice
 
@@ -145,7 +147,8 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
                 break
     test = tight_test(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
     refined = [_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists]
-    T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test)
+    height_map = functools.cache(lambda: target_heights(tgt_ref, test, cfg))  # built once, if the relief is asked
+    T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test, height_map)
     if v.slide_steps and verdict.confidence < 1.0:
         # An answer that is not clearly ahead: try it slid both ways along the direction its surface
         # contact constrains least (a wall or a floor lets a low-overlap pair slide along it), refined.
@@ -157,7 +160,8 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
                                                                v.slide_steps))
                 if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
         if slid:
-            T_answer, verdict, _ = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test)
+            T_answer, verdict, _ = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test,
+                                           height_map)
     return T_answer, verdict
 
 
@@ -184,7 +188,8 @@ def slid_transforms(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: Refinement
 
 def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.ndarray, Agreement]],
             candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
-            cfg: EngineConfig, test: TightTest) -> tuple[np.ndarray, Verdict, SharedData]:
+            cfg: EngineConfig, test: TightTest,
+            height_map: Callable[[], HeightMap | None]) -> tuple[np.ndarray, Verdict, SharedData]:
     """The best of the ``refined`` finalists by tight score, the verdict on it, and the data it aligns
     (what a rival must move differently)."""
     v = cfg.verdict
@@ -206,7 +211,7 @@ def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.nda
     rival_score = max((a.score for _, a in rivals), default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
     support = sum(displacement(T_answer, c.transform, sample) <= v.distinct_ratio for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)
-    relief = (relief_confidence(T_answer, agreement, rivals, src_ref, tgt_ref, test, cfg)
+    relief = (relief_confidence(T_answer, agreement, rivals, src_ref, tgt_ref, test, cfg, height_map)
               if v.height_weight > 0 and conf < 1.0 else 0.0)
     return T_answer, Verdict(confidence=max(conf, relief), score=agreement.score, rival_score=rival_score,
                              agreement=agreement, support=support / max(len(candidates), 1),
@@ -215,17 +220,17 @@ def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.nda
 
 def relief_confidence(T_answer: np.ndarray, agreement: Agreement, rivals: list[tuple[np.ndarray, Agreement]],
                       src_ref: RefinementCloud, tgt_ref: RefinementCloud, test: TightTest,
-                      cfg: EngineConfig) -> float:
+                      cfg: EngineConfig, height_map: Callable[[], HeightMap | None] | None = None) -> float:
     """The answer's confidence when the relief over the target's dominant plane counts as well
     (:mod:`gctr_cli.engine.height`): each score plus ``verdict.height_weight`` times its relief
     agreement, the lead measured against ``verdict.height_full_margin``. The relief is coarse (cells
     of ``verdict.height_cell_ratio``): it tells *which* alignment is right, where noisy structure
     leaves the surface agreement of the right one no better than a wrong one's (outdoor LiDAR), but
     not how precise it is — so it never chooses the answer, and counts against a wider margin. 0 when
-    the target has no relief."""
+    the target has no relief. ``height_map``: returns the target's height map (:func:`target_heights`),
+    for a caller that judges several times on the same target and test; built here when not given."""
     v = cfg.verdict
-    heights = HeightMap.build(tgt_ref.points, tgt_ref.normals, 2 * test.distance, v.height_cell_ratio,
-                              v.height_tolerance_ratio)
+    heights = height_map() if height_map is not None else target_heights(tgt_ref, test, cfg)
     if heights is None:
         return 0.0
 
@@ -234,6 +239,13 @@ def relief_confidence(T_answer: np.ndarray, agreement: Agreement, rivals: list[t
 
     rival_score = max((with_relief(T, a) for T, a in rivals), default=0.0)
     return confidence(with_relief(T_answer, agreement), rival_score, v.height_full_margin)
+
+
+def target_heights(tgt_ref: RefinementCloud, test: TightTest, cfg: EngineConfig) -> HeightMap | None:
+    """The target's relief over its dominant plane at the verdict's cells and tolerance (None: no relief)."""
+    v = cfg.verdict
+    return HeightMap.build(tgt_ref.points, tgt_ref.normals, 2 * test.distance, v.height_cell_ratio,
+                           v.height_tolerance_ratio)
 
 
 def _truncated(value: float) -> str:
