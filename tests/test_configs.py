@@ -40,3 +40,13 @@ def test_slide_steps_must_be_shares_of_the_smaller_cloud():
     for bad in ([0.0], [-0.1], [0.1, 1.5]):
         with pytest.raises(ConfigError, match=entry):
             config_from_dict({"engine": {"verdict": {"slide_steps": bad}}})
+
+
+@pytest.mark.parametrize("section, key", [("tensor", "knn_eps"), ("tensor", "normal_weight"),
+                                          ("supervoxel", "spatial_weight"), ("refine", "start_ratio")])
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan")])
+def test_numbers_must_be_finite(section, key, value):
+    """YAML's .inf / .nan are refused for every number, with the key named: before, an infinite
+    knn_eps passed `gctr config check` and then failed each pair with an IndexError."""
+    with pytest.raises(ConfigError, match=rf"engine\.{section}\.{key}: Input should be a finite number"):
+        config_from_dict({"engine": {section: {key: value}}})
