@@ -1,4 +1,5 @@
-"""4x4 similarity transforms: compose, split, apply, invert (pure numpy; imports nothing of gctr_cli).
+"""4x4 similarity transforms: compose, split, apply, invert; and a cloud's robust core (pure numpy;
+imports nothing of gctr_cli).
 
 Convention (GUIDE §1): ``T = [[s·R, t], [0 0 0 1]]`` maps source points onto the target,
 ``target ≈ s·R·source + t``; points are ``(N, 3)`` float arrays, one point per row.
@@ -9,7 +10,12 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["apply", "invert", "random_rotation", "split", "to_matrix"]
+__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "apply", "coordinate_range_problem", "invert", "random_rotation",
+           "robust_core", "split", "to_matrix"]
+
+#: coordinates gctr can register: squared distances and covariances stay finite and nonzero in float64
+MAX_COORDINATE = 1e100
+MIN_EXTENT = 1e-100
 
 
 def to_matrix(s: float, R: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
@@ -65,3 +71,27 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
         [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
         [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2],
     ])
+
+
+def robust_core(points: np.ndarray, spread: float = 3.0) -> np.ndarray:
+    """The points of ``points`` ``(N, 3)`` within ``spread`` times the 90th-percentile distance of the
+    coordinate-wise median: the cloud without its far outliers (a stray ``0 0 0`` "no return" in a
+    georeferenced export, a corrupt value), for the shape tests that one point must not decide."""
+    d = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    return points[d <= spread * np.percentile(d, 90)]
+
+
+def coordinate_range_problem(points: np.ndarray) -> str | None:
+    """Why finite ``points`` cannot be registered in float64 (squared distances overflow or underflow),
+    or None: coordinates beyond ±:data:`MAX_COORDINATE` (a corrupt value; no scanner's units reach it),
+    or a cloud whose extent is below :data:`MIN_EXTENT` without being a single point."""
+    if not len(points):
+        return None
+    big = float(np.abs(points).max())
+    if big > MAX_COORDINATE:
+        return (f"coordinates too large to register (|value| up to {big:.3g}, limit {MAX_COORDINATE:.0e}): "
+                "a corrupt value, or units far outside any scanner's")
+    extent = float(np.ptp(points, axis=0).max())
+    if 0.0 < extent < MIN_EXTENT:
+        return f"cloud too small to register (extent {extent:.3g}, limit {MIN_EXTENT:.0e}): rescale it"
+    return None

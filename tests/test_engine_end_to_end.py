@@ -323,6 +323,20 @@ def test_degenerate_inputs_fail_gracefully(bad, expected, which):
     assert res.scale == 1.0 and res.fitness == 0.0 and res.n_inliers == 0
 
 
+def test_stray_far_point_beside_utm_coordinates_registers():
+    """One 0 0 0 ("no return") in a georeferenced source does not make it look planar, and the far point
+    does not disturb the voxel grids: the pair registers as without it."""
+    utm = np.array([500000.0, 4500000.0, 100.0])
+    src = _model("bunny")[::9] * 100.0 + utm
+    T_true = to_matrix(1.3, random_rotation(np.random.default_rng(4)), [3.0, -2.0, 1.0])
+    T_true[:3, 3] += utm - T_true[:3, :3] @ utm  # rotate and scale about the UTM offset
+    tgt = apply(T_true, src)[::2]
+    res = register(np.vstack([src, [0.0, 0.0, 0.0]]), tgt, EngineConfig(), seed=0)
+    assert res.ok, res.message
+    err = transform_errors(res.transform, T_true, float(np.linalg.norm(np.ptp(tgt, axis=0))), src.mean(axis=0))
+    assert err.rot_err_deg < 2.0 and err.scale_err < 0.02 and err.trans_err_rel < 0.01, err
+
+
 def test_sparse_cloud_fails_gracefully():
     """A valid but sparse cloud (200 points on a bumpy surface) yields too few salient points."""
     rng = np.random.default_rng(3)

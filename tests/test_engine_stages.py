@@ -794,6 +794,17 @@ def test_downsample_to_caps_and_is_seeded():
     assert len(big) == len(occupied) == len(keys)
 
 
+
+def test_voxel_grid_spanning_a_far_outlier_keeps_voxels_apart():
+    """A point 1e9 diameters away spans a grid whose flat index overflows int64: the voxels must stay
+    distinct (numbered instead), not merge by a wrapped key."""
+    pts = normalise(bunny()).points
+    far = np.vstack([pts, [1e9, -1e9, 1e9]])
+    down = downsample_to(far, 0.05, 100_000, np.random.default_rng(5))
+    near = downsample_to(pts, 0.05, 100_000, np.random.default_rng(5))
+    assert len(down) == len(near) + 1
+    np.testing.assert_allclose(np.sort(down[:-1], axis=0), np.sort(near, axis=0))
+
 # ----------------------------------------------------------------------------------------------------
 # 9. refinement
 # ----------------------------------------------------------------------------------------------------

@@ -571,6 +571,29 @@ def test_too_few_points(tmp_path, n, ext):
         assert_error(ei, path, f"only {n} finite points", "at least 10")
 
 
+def test_one_far_stray_point_does_not_make_a_cloud_degenerate(tmp_path, cloud):
+    """A "no return" 0 0 0 beside UTM coordinates, or one corrupt value, must not make a good cloud look
+    flat or collinear: the shape tests ignore far outliers. A line with a stray point is still a line."""
+    utm = cloud + [500000.0, 4500000.0, 100.0]
+    path = tmp_path / "stray.ply"
+    save_point_cloud(path, np.vstack([utm, [0.0, 0.0, 0.0]]))
+    assert len(load_point_cloud(path)) == len(utm) + 1
+    line = np.outer(np.linspace(0.0, 1.0, 200), [1.0, 2.0, 3.0])
+    save_point_cloud(path, np.vstack([line, [1e4, 0.0, 0.0]]))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "collinear", "apart from 1 far outlier")
+
+
+@pytest.mark.parametrize("factor, expected", [(1e200, "coordinates too large"), (1e-200, "cloud too small")])
+def test_coordinates_float64_cannot_register_are_refused(tmp_path, cloud, factor, expected):
+    path = tmp_path / "extreme.ply"
+    save_point_cloud(path, cloud * factor)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, expected)
+
+
 def test_min_points_parameter(tmp_path):
     pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     path = tmp_path / "tri.ply"

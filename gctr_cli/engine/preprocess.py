@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
+from gctr_cli.geometry import coordinate_range_problem, robust_core
 
 
 class DegenerateCloudError(ValueError):
@@ -63,10 +64,16 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
         pts = pts[finite]
     if len(pts) < min_points:
         raise DegenerateCloudError(f"{name}: only {len(pts)} finite points (need at least {min_points})")
-    centred = pts - pts.mean(axis=0)
-    sv = np.linalg.svd(centred[:: max(1, len(pts) // 20000)], compute_uv=False)
+    problem = coordinate_range_problem(pts)
+    if problem:
+        raise DegenerateCloudError(f"{name}: {problem}")
+    # The shape tests look at the cloud without its far outliers (a stray 0 0 0 beside UTM
+    # coordinates would otherwise make any cloud look flat).
+    core = robust_core(pts[:: max(1, len(pts) // 20000)])
+    sv = np.linalg.svd(core - core.mean(axis=0), compute_uv=False)
     if sv[0] == 0.0:
-        raise DegenerateCloudError(f"{name}: all {len(pts)} points are identical")
+        apart = " (apart from far outliers)" if len(core) < len(pts[:: max(1, len(pts) // 20000)]) else ""
+        raise DegenerateCloudError(f"{name}: all {len(pts)} points are identical{apart}")
     if sv[1] < 1e-9 * sv[0]:
         raise DegenerateCloudError(f"{name}: points are collinear")
     if sv[2] < 1e-3 * sv[0]:
@@ -105,6 +112,10 @@ def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     ijk = np.floor(points / size).astype(np.int64)
     ijk -= ijk.min(axis=0)
     dims = ijk.max(axis=0) + 1
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
+        # A far outlier spans a grid whose flat index would overflow int64 (and merge voxels
+        # silently): number the occupied voxels instead.
+        return np.unique(ijk, axis=0, return_inverse=True)[1].reshape(-1)
     return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
 
 

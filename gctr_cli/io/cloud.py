@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gctr_cli.geometry import coordinate_range_problem, robust_core
 from gctr_cli.io.errors import PointCloudError, clean
 
 __all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "eight_bit_colours", "named_normals", "transform_cloud",
@@ -68,15 +69,28 @@ def validate_cloud(cloud: PointCloud, path: Path, min_points: int, degenerate_ok
         raise PointCloudError(
             f"{path}: too few points: only {n} finite points{dropped} (at least {min_points} required)"
         )
-    if degenerate_ok:
-        pass
-    elif (pts == pts[0]).all():
-        raise PointCloudError(f"{path}: degenerate cloud: all {n} points{dropped} are identical")
-    elif _collinear(pts):
-        raise PointCloudError(f"{path}: degenerate cloud: points are collinear ({n} points{dropped} on one line)")
+    if not degenerate_ok:
+        _check_shape(pts, path, dropped)
     if n_bad:
         logger.warning("%s: dropped %d of %d points with non-finite (NaN/inf) coordinates", clean(path), n_bad, n_total)
     return cloud
+
+
+def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> None:
+    """Refuse coordinates float64 cannot register, and clouds whose core (without far outliers: one
+    stray point must not decide) is a single point or a line."""
+    problem = coordinate_range_problem(pts)
+    if problem:
+        raise PointCloudError(f"{path}: {problem}")
+    n = len(pts)
+    core = robust_core(pts)
+    outliers = f", apart from {n - len(core)} far outlier(s)" if len(core) < n else ""
+    if (core == core[0]).all():
+        raise PointCloudError(f"{path}: degenerate cloud: all {len(core)} points{dropped} are identical{outliers}")
+    elif _collinear(core):
+        raise PointCloudError(
+            f"{path}: degenerate cloud: points are collinear ({len(core)} points{dropped} on one line{outliers})"
+        )
 
 
 def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
