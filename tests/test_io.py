@@ -275,6 +275,8 @@ def test_ply_random_bytes(tmp_path, rng):
         (b"ply\nformat ascii 1.0\nelement vertex -3\nend_header\n", "bad element count"),
         (b"ply\nformat binary_middle_endian 1.0\nend_header\n", "unsupported format"),
         (b"ply\nformat ascii 1.0\nvertices 3\nend_header\n", "unrecognised keyword"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+         b"property float z\nend_header\n", "line 7: duplicate vertex property 'z'"),
     ],
 )
 def test_ply_broken_headers(tmp_path, header, keyword):
