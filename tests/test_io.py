@@ -493,6 +493,42 @@ def test_text_bad_line_reports_line_number(tmp_path):
     assert_error(ei, path, "line 13", "2 column(s)")
 
 
+def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
+    """The dialect is read off the first data line but must not misread later lines: whole numbers
+    first and decimal commas later (semicolons) are still decimal commas; a blank-separated file's
+    later decimal commas, an empty cell among x y z and a bad first data line are errors, never a
+    silent shift of the columns."""
+    pts = np.round(rng.normal(size=(30, 3)) * 100, 3)
+    path = tmp_path / "dc.txt"
+    rows = [";".join(f"{v:.3f}".replace(".", ",") for v in p) for p in pts]
+    path.write_text("12;-80;41\n" + "\n".join(rows) + "\n")
+    np.testing.assert_allclose(load_point_cloud(path), np.vstack([[12, -80, 41], pts]))
+
+    cases = {
+        "blank.xyz": ("1 2 3\n4 5 6\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts)
+                      + "\n1,5 2,5 3,5\n", ["line 33", "non-numeric value '1,5'"]),
+        "empty.csv.txt": ("\n".join(",".join(f"{v:.3f}" for v in p) + ",7" for p in pts[:10])
+                          + "\n1.5,,2.5,7\n", ["line 11", "empty x, y or z value", "'1.5,,2.5,7'"]),
+        "empty.dc.txt": ("\n".join(rows[:5]) + "\n1,5;;2,5\n", ["line 6", "empty x, y or z value"]),
+        "bad_first.xyz": ("0.1 0.2 0.x3\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts),
+                          ["line 1", "non-numeric value '0.x3'"]),
+        "truncated.pts": (f"{len(pts) + 5}\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts),
+                          ["line 1 declares 35 points but the file has 30", "truncated"]),
+        "sections.pts": (f"{len(pts)}\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts)
+                         + "\n12\n1 2 3\n", ["line 32 has 1 column(s)", "multi-section PTS"]),
+    }
+    big = np.round(rng.normal(size=(6000, 3)), 6)  # past the first 64 KiB block: numpy's fast path
+    lines = [",".join(f"{v:.6f}" for v in p) for p in big]
+    lines[5000] = lines[5000].replace(",", ",,", 1)
+    cases["empty_late.txt"] = ("\n".join(lines) + "\n", ["line 5001", "empty x, y or z value"])
+    for name, (text, keywords) in cases.items():
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(PointCloudError) as ei:
+            load_point_cloud(path)
+        assert_error(ei, path, *keywords)
+
+
 def test_text_without_numbers(tmp_path):
     path = tmp_path / "words.txt"
     path.write_text("hello world\nthis is not a cloud\n")

@@ -5,7 +5,10 @@ numbers, a leading point-count line (one number on its own) and ``#`` / ``//`` c
 skipped. Columns are separated by blanks, tabs, commas or semicolons. Exports with decimal commas are
 read when the separator makes them unambiguous (tabs or semicolons: ``1,5;2,25;3`` is x=1.5 y=2.25
 z=3); decimal commas separated by blanks (``1,5 2,25 3,0``) are refused with a message saying so,
-because they cannot be told apart from comma-separated columns.
+because they cannot be told apart from comma-separated columns. The dialect is read off the first
+data line and held to: a later line that does not fit it, or has an empty x/y/z cell, is an error
+naming the line, never a silent shift of the columns. A leading point-count line that promises more
+points than follow is an error (a truncated file).
 
 Read in blocks of whole lines (``np.loadtxt`` for plain numeric blocks), so memory follows the number
 of points, not the size of the text: about 180 MB and 7 s for 2 million points. A line longer than
@@ -37,10 +40,25 @@ MAX_LINE = 1 << 20
 #: bytes that make a block take the line-by-line path: characters that ``str.splitlines`` or
 #: ``str.split`` treat as line breaks or blanks but ``np.loadtxt`` may not, a lone ``\r``, comments
 _TEXT_SLOW_BYTES = re.compile(rb"[\x0b\x0c\x1c-\x1f\x85\xa0#_]|//|\r(?!\n)")
-#: separators -> blanks; with decimal commas, commas -> points
+#: the three dialects, each a byte translation decided on the first data line: blanks only (commas
+#: stay, so a stray one is an error, not a column); commas or semicolons between columns (-> blanks);
+#: tabs or semicolons between columns and decimal commas (commas -> points)
+_BLANK = bytes.maketrans(b"", b"")
 _PLAIN = bytes.maketrans(b",;", b"  ")
 _DECIMAL_COMMA = bytes.maketrans(b",;", b". ")
 _DEC_COMMA_TOKEN = re.compile(r"^[+-]?\d+,\d+(?:[eE][+-]?\d+)?$")
+#: a line whose x, y or z cell is empty (two separators in a row among the first three columns),
+#: which the translation to blanks would otherwise close up, shifting the columns silently
+_EMPTY_CELL = {
+    _PLAIN: r"^[ \t]*(?:[^,;\s]+[ \t]*[,;][ \t]*){0,2}[,;]",
+    _DECIMAL_COMMA: r"^[ \t]*(?:[^;\s]+[ \t]*[;\t][ \t]*){0,2}[;\t]",
+}
+_EMPTY_CELL_TEXT = {table: re.compile(pattern) for table, pattern in _EMPTY_CELL.items()}
+#: the quick test for a block: its separators as commas, blanks between them deleted (translation
+#: and deletion), so that two separators in a row anywhere show as ",," (the line path then checks
+#: whether the empty cell is among x y z)
+_SEPARATORS_AS_COMMAS = {_PLAIN: (bytes.maketrans(b";", b","), b" \t"),
+                         _DECIMAL_COMMA: (bytes.maketrans(b",;\t", b".,,"), b" ")}
 
 
 def _is_number(tok: str) -> bool:
@@ -89,9 +107,14 @@ def _blocks(fh, path: Path) -> Iterator[bytes]:
 
 def _fast(block: bytes, table: bytes) -> np.ndarray | None:
     """x y z of a block of plain numeric lines via numpy's C parser; None if the block needs the
-    line-by-line path (comments, unusual separators, a bad line: that path gives the exact error)."""
+    line-by-line path (comments, unusual separators, an empty cell, a bad line: that path gives the
+    exact error)."""
     if _TEXT_SLOW_BYTES.search(block):
         return None
+    if table in _SEPARATORS_AS_COMMAS:
+        squeezed = block.translate(*_SEPARATORS_AS_COMMAS[table])
+        if b",," in squeezed or b"\n," in squeezed or squeezed.startswith(b","):
+            return None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "input contained no data" for blank blocks
         try:
@@ -110,7 +133,7 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         raise PointCloudError(f"{path}: not a text point cloud (binary data found)")
     fh.seek(0)
     parts: list[np.ndarray] = []
-    state: dict[str, Any] = {"header": True, "seen_count_line": False, "table": _PLAIN}
+    state: dict[str, Any] = {"header": True, "seen_count_line": False, "table": _PLAIN, "count": None}
     lines_before = 0
     for k, block in enumerate(_blocks(fh, path)):
         if k == 0 and block.startswith(b"\xef\xbb\xbf"):  # UTF-8 byte order mark
@@ -125,16 +148,27 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     pts = np.concatenate(parts) if parts else np.empty((0, 3))
     if len(pts) == 0:
         raise PointCloudError(f"{path}: contains no points (no lines with numeric x y z columns)")
+    if state.get("count") and state["count"][0] > len(pts):
+        declared, lineno = state["count"]
+        raise PointCloudError(
+            f"{path}: line {lineno} declares {declared} points but the file has {len(pts)} (truncated?)"
+        )
     return PointCloud(pts, {}, "xyz")
 
 
 def _dialect(line: str, path: Path, lineno: int) -> bytes:
-    """The byte translation for the file, decided on its first data line."""
+    """The byte translation for the file, decided on its first data line.
+
+    Tabs or semicolons between columns: commas are decimal commas unless this line uses them between
+    columns too (a later ``1,5`` after a first line of whole numbers is then 1.5, and a later comma
+    between columns is an error, never a silent split). Commas between columns: commas and
+    semicolons become blanks. Blanks only: commas stay, so that ``1,5 2,5 3,5`` later in the file is
+    an error instead of six columns."""
     if ";" in line or "\t" in line:
         fields = [f.strip() for f in re.split(r"[;\t]", line) if f.strip()]
-        if any(_DEC_COMMA_TOKEN.match(f) for f in fields):
-            return _DECIMAL_COMMA
-        return _PLAIN
+        if any("," in f and not _DEC_COMMA_TOKEN.match(f) for f in fields):
+            return _PLAIN
+        return _DECIMAL_COMMA
     toks = line.split()
     if len(toks) >= 3 and all(_DEC_COMMA_TOKEN.match(t) for t in toks[:3]):
         raise PointCloudError(
@@ -142,7 +176,7 @@ def _dialect(line: str, path: Path, lineno: int) -> bytes:
             f"({quote(line, 40)}), which cannot be told apart from comma-separated columns; export with "
             "'.' as the decimal separator, or separate the columns with tabs or semicolons"
         )
-    return _PLAIN
+    return _PLAIN if "," in line else _BLANK
 
 
 def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tuple[np.ndarray, int]:
@@ -166,11 +200,14 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 continue
             table = _dialect(s, path, lines_before + start + 1)
             toks = s.encode("latin-1").translate(table).decode("latin-1").split()
-            if not all(_is_number(t) for t in toks[:3]):
+            if not _is_number(toks[0]):  # a header line ("X Y Z", "//X,Y,Z"); "0.1 0.2 0.x3" is a bad data line
                 start += 1
                 continue
             if len(toks) == 1 and not state["seen_count_line"]:
                 state["seen_count_line"] = True
+                value = float(toks[0])
+                if value.is_integer() and value > 0:
+                    state["count"] = (int(value), lines_before + start + 1)
                 start += 1
                 continue
             state["header"] = False
@@ -188,17 +225,26 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 if not _is_number(tok):
                     raise PointCloudError(f"{path}: line {lines_before + i + 1}: non-numeric value {quote(tok)}")
 
+    empty_cell = _EMPTY_CELL_TEXT.get(state["table"])
     flat: list[str] = []
     add = flat.extend
     for i in range(start, len(lines)):
         s = lines[i].strip()
         if is_comment(s):
             continue
+        if empty_cell and empty_cell.match(raw_lines[i].strip()):
+            first_non_numeric(i)
+            raise PointCloudError(
+                f"{path}: line {lines_before + i + 1}: empty x, y or z value ({quote(raw_lines[i], 60)})"
+            )
         toks = s.split(None, 3)
         if len(toks) < 3:
             first_non_numeric(i)  # the first bad line of the file is the one reported
+            hint = ""
+            if len(toks) == 1 and state.get("count") and _is_number(toks[0]):
+                hint = " (a second point-count line? multi-section PTS files are not read: split the sections)"
             raise PointCloudError(
-                f"{path}: line {lines_before + i + 1} has {len(toks)} column(s), expected at least 3 (x y z)"
+                f"{path}: line {lines_before + i + 1} has {len(toks)} column(s), expected at least 3 (x y z){hint}"
             )
         add(toks[:3])
     if any("_" in t for t in flat):  # float() accepts 1_000; no point cloud writer does
