@@ -401,6 +401,9 @@ def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the 
 
     try:
         T = read_matrix(matrix)
+    except MatrixError as exc:  # named as the matrix: swapped arguments are the usual cause
+        _die(f"matrix {exc}")
+    try:
         similarity, reason = is_similarity(T)
         if not similarity:  # a general affine map is applied as given, but rarely meant
             logger.warning("%s is not a similarity transform (%s); applying it anyway", matrix, reason)
@@ -626,7 +629,7 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
         try:
             T = read_matrix(matrix)
         except MatrixError as exc:
-            _die(str(exc))
+            _die(f"matrix {exc}")
         ok, reason = is_similarity(T)
         if not ok:
             logger.warning("%s is not a similarity transform (%s); drawing it anyway", matrix, reason)

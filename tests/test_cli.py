@@ -327,6 +327,14 @@ def test_outputs_that_cannot_be_written_are_refused_before_any_work(runner, fake
     assert res.exit_code == 2 and under_file in res.stderr
 
 
+def test_apply_with_its_arguments_swapped_names_the_cloud_as_the_matrix(runner, four_pairs, tmp_path):
+    src = four_pairs.root / four_pairs.rows[0]["source"]
+    (tmp_path / "m.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    res = invoke(runner, "apply", src, tmp_path / "m.txt", "-o", tmp_path / "out.ply")
+    assert res.exit_code == 2 and res.stderr.startswith(f"gctr: error: matrix {src}: "), res.stderr
+    assert not (tmp_path / "out.ply").exists()
+
+
 # ----------------------------------------------------------------------------------------------------
 # batch
 # ----------------------------------------------------------------------------------------------------

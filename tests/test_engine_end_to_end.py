@@ -337,6 +337,20 @@ def test_stray_far_point_beside_utm_coordinates_registers():
     assert err.rot_err_deg < 2.0 and err.scale_err < 0.02 and err.trans_err_rel < 0.01, err
 
 
+def test_register_takes_the_whole_loaded_config_or_its_engine_section():
+    """The README loads a config and passes ``config.engine``; passing the whole config works the same,
+    and anything else is a TypeError that says what to pass (not an AttributeError deep inside)."""
+    from gctr_cli.config import load_config
+
+    src = _good_cloud()
+    tgt = src * 1.5 + 1.0
+    config = load_config(None)
+    whole, section = register(src, tgt, config, seed=0), register(src, tgt, config.engine, seed=0)
+    assert whole.ok and np.array_equal(whole.transform, section.transform)
+    with pytest.raises(TypeError, match=r"config must be an EngineConfig .* got dict"):
+        register(src, tgt, {"min_confidence": 0.5}, seed=0)  # type: ignore[arg-type]
+
+
 def test_sparse_cloud_fails_gracefully():
     """A valid but sparse cloud (200 points on a bumpy surface) yields too few salient points."""
     rng = np.random.default_rng(3)

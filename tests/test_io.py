@@ -802,8 +802,9 @@ def test_read_matrix_lenient_layout(tmp_path):
     [
         ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", ["expected 4 rows", "found 3"]),
         ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n0 0 0 1\n", ["more than 4 rows", "line 5"]),
-        ("1 0 0 0 9\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "5 numbers, expected 4"]),
+        ("1 0 0 0 9\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "5 values, expected 4 numbers"]),
         ("1 0 0 0\n0 one 0 0\n0 0 1 0\n0 0 0 1\n", ["line 2", "non-numeric"]),
+        ("1_0 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "non-numeric"]),
         ("1 0 0 nan\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["non-finite", "(0,3)"]),
         ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 1 1\n", ["last row must be '0 0 0 1'"]),
         ("# only comments\n\n", ["expected 4 rows", "found 0"]),

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gctr_cli.config import EngineConfig
+from gctr_cli.config import Config, EngineConfig
 from gctr_cli.engine.decide import decide, refusal_message, similarity_scale, tight_agreement, tight_test
 from gctr_cli.engine.halves import half_candidates
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, prepare_cloud
@@ -105,16 +105,23 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine)
 
 
-def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | None = None, seed: int = 0, *,
+def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Config | None = None, seed: int = 0, *,
              source_normals: np.ndarray | None = None,
              target_normals: np.ndarray | None = None) -> RegistrationResult:
     """Estimate the similarity mapping ``source`` (N, 3) onto ``target`` (M, 3).
 
-    Normals are re-estimated on the working (downsampled) clouds, so the optional normal arguments
-    are accepted for API symmetry but not required. Returns a result with ``status='failed'`` and a
-    message (never raises) when the inputs are degenerate or the evidence is too weak.
+    ``config`` is the engine section (``load_config(...).engine``) or the whole loaded config (its
+    engine section is used); None for the defaults. Normals are re-estimated on the working
+    (downsampled) clouds, so the optional normal arguments are accepted for API symmetry but not
+    required. Returns a result with ``status='failed'`` and a message (never raises on data) when the
+    inputs are degenerate or the evidence is too weak; a config of another type is a TypeError.
     """
     del source_normals, target_normals  # normals are recomputed on the downsampled clouds
+    if isinstance(config, Config):
+        config = config.engine
+    if config is not None and not isinstance(config, EngineConfig):
+        raise TypeError(f"config must be an EngineConfig (load_config(...).engine) or a Config, "
+                        f"got {type(config).__name__}")
     cfg = config if config is not None else EngineConfig()
     start = time.perf_counter()
     timer = StageTimer({})

@@ -41,10 +41,12 @@ def read_matrix(path: str | Path) -> np.ndarray:
             continue
         tokens = line.split()
         if len(tokens) != 4:
-            raise MatrixError(f"{path}: line {lineno} has {len(tokens)} numbers, expected 4: {quote(raw.strip(), 80)}")
+            raise MatrixError(f"{path}: line {lineno} has {len(tokens)} values, expected 4 numbers: {quote(raw.strip(), 80)}")
         if len(rows) == 4:
             raise MatrixError(f"{path}: more than 4 rows of numbers (extra row on line {lineno})")
         try:
+            if any("_" in t for t in tokens):  # float() reads 1_0 as 10; no matrix writer does
+                raise ValueError
             rows.append([float(t) for t in tokens])
         except ValueError:
             raise MatrixError(f"{path}: line {lineno} contains a non-numeric value: {quote(raw.strip(), 80)}") from None
