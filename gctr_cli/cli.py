@@ -173,7 +173,8 @@ def run() -> None:
     """
     code: int | str | None = 0
     try:
-        returned = main(prog_name="gctr", standalone_mode=False)
+        with _sigterm_as_interrupt():  # every command stops on SIGTERM as on Ctrl-C, with a message
+            returned = main(prog_name="gctr", standalone_mode=False)
         code = returned if isinstance(returned, int) else 0  # --help / --version exit through here
     except click.UsageError as exc:  # bad option or argument: one line like every other error
         no_args = getattr(click.exceptions, "NoArgsIsHelpError", ())
@@ -186,9 +187,10 @@ def run() -> None:
     except click.ClickException as exc:
         click.echo(f"gctr: error: {exc.format_message()}", err=True)
         code = exc.exit_code
-    except click.exceptions.Abort:  # Ctrl-C outside a batch (the batch handles its own)
-        click.echo("gctr: interrupted", err=True)
-        code = 128 + signal.SIGINT
+    except (click.exceptions.Abort, KeyboardInterrupt) as exc:  # Ctrl-C / SIGTERM outside a batch (it has its own)
+        terminated = isinstance(exc, _Terminated) or isinstance(exc.__cause__, _Terminated)
+        click.echo(f"gctr: {'terminated' if terminated else 'interrupted'}", err=True)
+        code = 128 + (signal.SIGTERM if terminated else signal.SIGINT)
     except SystemExit as exc:
         code = exc.code
     if not _ONE_SHOT:
@@ -197,7 +199,10 @@ def run() -> None:
         print(code, file=sys.stderr)
         code = 1
     logging.shutdown()
-    sys.stdout.flush()
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        _stdout_to_devnull()
     sys.stderr.flush()
     os._exit(code or 0)
 
@@ -313,34 +318,45 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         except (PointCloudError, MatrixError) as exc:
             _die(str(exc))
 
-    echo = click.echo
-    echo(f"status: {outcome.status}")
+    lines = [f"status: {outcome.status}"]
     if outcome.message:
-        echo(f"message: {outcome.message}")
+        lines.append(f"message: {outcome.message}")
     if outcome.transform is not None:
-        echo("matrix (source -> target):")
-        echo(format_matrix(outcome.transform), nl=False)
-        echo(f"scale: {outcome.scale!r}")
-    echo(f"fitness: {_fmt_num(outcome.fitness)}")
-    echo(f"confidence: {_fmt_confidence(outcome.confidence)}")
-    echo(f"inlier_rmse: {_fmt_num(outcome.inlier_rmse)}")
-    echo(f"runtime_s: {outcome.runtime_s:.3f}")
-    echo(f"seed: {outcome.seed}")
+        lines += ["matrix (source -> target):", format_matrix(outcome.transform).rstrip("\n"),
+                  f"scale: {outcome.scale!r}"]
+    lines += [f"fitness: {_fmt_num(outcome.fitness)}", f"confidence: {_fmt_confidence(outcome.confidence)}",
+              f"inlier_rmse: {_fmt_num(outcome.inlier_rmse)}", f"runtime_s: {outcome.runtime_s:.3f}",
+              f"seed: {outcome.seed}"]
     if outcome.errors is not None:
         e = outcome.errors
-        echo(f"rot_err_deg: {e.rot_err_deg:.6g}")
-        echo(f"trans_err: {e.trans_err:.6g}")
-        echo(f"trans_err_rel: {e.trans_err_rel:.6g}")
-        echo(f"scale_err: {e.scale_err:.6g}")
-        echo(f"tm_err: {e.tm_err:.6g}")
-        echo(f"success: {'true' if outcome.success else 'false'}")
+        lines += [f"rot_err_deg: {e.rot_err_deg:.6g}", f"trans_err: {e.trans_err:.6g}",
+                  f"trans_err_rel: {e.trans_err_rel:.6g}", f"scale_err: {e.scale_err:.6g}",
+                  f"tm_err: {e.tm_err:.6g}", f"success: {'true' if outcome.success else 'false'}"]
+    if transform is not None and aligned is not None:
+        lines.append(f"aligned: {aligned}")
+    _print_report("\n".join(lines) + "\n")
     if transform is None:
         for path, what in ((output, "matrix"), (aligned, "aligned cloud")):
             if path is not None:
                 click.echo(f"gctr: no {what} written to {path} (registration failed)", err=True)
         sys.exit(EXIT_FAILED)
-    if aligned is not None:
-        echo(f"aligned: {aligned}")
+
+
+def _print_report(text: str) -> None:
+    """``text`` on stdout. A reader that stopped early (``gctr register … | head -1``) is not an
+    error: the rest is dropped and the exit code stays the registration's."""
+    try:
+        click.echo(text, nl=False)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        _stdout_to_devnull()
+
+
+def _stdout_to_devnull() -> None:
+    """Point stdout at /dev/null so that later writes and the final flush do not fail again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 def _check_output_cloud(path: Path) -> None:

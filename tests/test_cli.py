@@ -295,7 +295,7 @@ def test_register_exit_codes(runner, fake_register, dataset, tmp_path):
     assert res.exit_code == 2 and f"{tmp_path}/missing.ply: file does not exist" in res.stderr
     (tmp_path / "bad_gt.txt").write_text("1 2 3\n")
     res = invoke(runner, "register", src, tgt, "--gt", tmp_path / "bad_gt.txt")
-    assert res.exit_code == 2 and f"ground truth {tmp_path}/bad_gt.txt: line 1 has 3 numbers" in res.stderr
+    assert res.exit_code == 2 and f"ground truth {tmp_path}/bad_gt.txt: line 1 has 3 values, expected 4 numbers" in res.stderr
     (tmp_path / "bad.yaml").write_text("engine: {nope: 1}\n")
     res = invoke(runner, "register", src, tgt, "-c", tmp_path / "bad.yaml")
     assert res.exit_code == 2 and "engine.nope: unknown key" in res.stderr
@@ -624,6 +624,65 @@ def test_register_and_apply_as_processes_write_everything_before_the_fast_exit(t
                                rtol=0, atol=1e-9 * float(np.abs(load_point_cloud(tgt)).max()))
     missing = gctr("register", tmp_path / "nope.ply", tgt, env=subprocess_env)
     assert missing.returncode == 2 and "nope.ply" in missing.stderr
+
+
+REGISTER_DRIVER = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    import gctr_cli.engine
+    from gctr_cli import cli
+
+    started = Path(sys.argv.pop())
+
+    def stuck(*args, **kwargs):
+        started.touch()  # running: the signal handlers are in place
+        time.sleep(60)
+
+    gctr_cli.engine.register = stuck
+    cli.run()
+    """
+)
+
+
+def test_register_stopped_by_sigterm_says_so_and_exits_143(tmp_path, subprocess_env):
+    import signal
+    import time
+
+    manifest, _ = _real_pairs(tmp_path / "data")
+    row = read_csv(manifest)[1][0]
+    driver, started = tmp_path / "driver.py", tmp_path / "started"
+    driver.write_text(REGISTER_DRIVER)
+    proc = subprocess.Popen([PYTHON, str(driver), "register", str(tmp_path / "data" / row["source"]),
+                             str(tmp_path / "data" / row["target"]), str(started)],
+                            env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not started.exists() and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGTERM)
+        _stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM and stderr.strip().endswith("gctr: terminated"), stderr
+
+
+def test_register_whose_reader_stops_early_keeps_its_exit_code(tmp_path, subprocess_env):
+    """``gctr register … | head -1``: the closed pipe drops the rest of the report, silently; the exit
+    code stays the registration's (0), the matrix file is written."""
+    manifest, _ = _real_pairs(tmp_path / "data")
+    row = read_csv(manifest)[1][0]
+    proc = subprocess.Popen([PYTHON, "-m", "gctr_cli", "register", str(tmp_path / "data" / row["source"]),
+                             str(tmp_path / "data" / row["target"]), "-o", str(tmp_path / "m.txt")],
+                            env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader is gone before the report is printed
+    stderr = proc.stderr.read().decode()
+    assert proc.wait(timeout=300) == 0, stderr
+    assert stderr == "" and read_matrix(tmp_path / "m.txt").shape == (4, 4)
 
 
 def test_register_sets_up_the_allocator(runner, fake_register, four_pairs, monkeypatch):

@@ -41,7 +41,9 @@ def read_matrix(path: str | Path) -> np.ndarray:
             continue
         tokens = line.split()
         if len(tokens) != 4:
-            raise MatrixError(f"{path}: line {lineno} has {len(tokens)} values, expected 4 numbers: {quote(raw.strip(), 80)}")
+            raise MatrixError(
+                f"{path}: line {lineno} has {len(tokens)} values, expected 4 numbers: {quote(raw.strip(), 80)}"
+            )
         if len(rows) == 4:
             raise MatrixError(f"{path}: more than 4 rows of numbers (extra row on line {lineno})")
         try:
