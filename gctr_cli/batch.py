@@ -172,11 +172,19 @@ def run_batch(
         finally:
             lock.release()
     finally:
-        for folder in created:  # the folders this run created, if it left nothing in them
-            try:
-                folder.rmdir()
-            except OSError:
-                pass  # not empty: the run (or someone else) left something in it
+        # The folders this run created, if it left nothing in them. While OUTDIR holds results, the
+        # folders on the way to it as written stay too (``new/../results`` keeps an empty ``new``),
+        # or the paths the summary prints would not exist.
+        if not (outdir / "transforms.csv").exists():
+            for folder in created:
+                _remove_if_empty(folder)
+
+
+def _remove_if_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:
+        pass  # not empty: the run (or someone else) left something in it; or gone already
 
 
 def _missing_folders(outdir: Path) -> list[Path]:

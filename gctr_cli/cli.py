@@ -463,7 +463,7 @@ def _print_summary(summary: Any, config: Any) -> None:
             f" ({s.median_trans_err_rel:.4g} x target diagonal), scale {s.median_scale_err:.4g},"
             f" TM {s.median_tm_err:.4g}"
         )
-    echo(f"wall time: {s.wall_time_s:.1f} s ({s.n_run} pairs run)")
+    echo(f"wall time: {s.wall_time_s:.1f} s ({s.n_run} pair{'' if s.n_run == 1 else 's'} run)")
     if s.failures:
         echo("failed pairs:")
         for pid, msg in s.failures[:50]:
@@ -692,7 +692,7 @@ def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Pa
     except ManifestError as exc:
         _die(str(exc))
     n_gt = sum(p.gt is not None for p in pairs)
-    click.echo(f"wrote {len(pairs)} pairs ({n_gt} with ground truth) to {output}")
+    click.echo(f"wrote {len(pairs)} pair{'' if len(pairs) == 1 else 's'} ({n_gt} with ground truth) to {output}")
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -425,7 +425,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
              "good" if s.success_rate >= 0.999 else "bad" if s.success_rate < 0.5 else "")
     else:
         card("n/a", "success (no ground truth)")
-    card(f"{s.wall_time_s:.1f} s", f"wall time ({s.n_run} pairs run)")
+    card(f"{s.wall_time_s:.1f} s", f"wall time ({s.n_run} pair{'' if s.n_run == 1 else 's'} run)")
     w("</div>\n<table class=\"kv\">\n")
     kv: list[tuple[str, str]] = []
     if s.n_resumed:
@@ -441,7 +441,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     if config is not None:
         kv.append(("method / seed", f"{getattr(config, 'method', '?')} / {getattr(config, 'seed', '?')}"))
     kv.append(("files", "transforms.csv, tm_errors.csv, matrices/, config.yaml"
-               + (", snapshots/" if has_snapshots else "")))
+               + (", snapshots/" if has_snapshots else "") + (", aligned/" if (outdir / "aligned").is_dir() else "")))
     for k, v in kv:
         w(f"<tr><td>{_e(k)}</td><td>{_e(v)}</td></tr>\n")
     w("</table>\n</section>\n")

@@ -258,6 +258,14 @@ def test_a_stop_before_the_first_pair_keeps_an_empty_folder_that_existed(four_pa
     assert (tmp_path / "results").is_dir() and list((tmp_path / "results").iterdir()) == []
 
 
+def test_a_finished_run_keeps_the_folders_on_the_path_it_was_given(four_pairs, fast_config, tmp_path, monkeypatch):
+    """new/../results: after a run that recorded pairs the path as given still leads to the results
+    (the summary prints it), so the empty new/ it created stays."""
+    monkeypatch.chdir(tmp_path)
+    run_batch(four_pairs.specs(), fast_config, "new/../results", workers=1, register_fn=fake_engine.register)
+    assert (tmp_path / "new").is_dir() and os.path.isfile("new/../results/transforms.csv")
+
+
 def test_an_output_folder_name_the_system_refuses_is_exit_2(four_pairs, tmp_path, fake_batch):
     result = invoke("batch", four_pairs.manifest(), "-o", tmp_path / ("a" * 300) / "out", "-q")
     assert result.exit_code == 2 and "cannot create output folder" in result.output
