@@ -295,7 +295,8 @@ def test_register_exit_codes(runner, fake_register, dataset, tmp_path):
     assert res.exit_code == 2 and f"{tmp_path}/missing.ply: file does not exist" in res.stderr
     (tmp_path / "bad_gt.txt").write_text("1 2 3\n")
     res = invoke(runner, "register", src, tgt, "--gt", tmp_path / "bad_gt.txt")
-    assert res.exit_code == 2 and f"ground truth {tmp_path}/bad_gt.txt: line 1 has 3 values, expected 4 numbers" in res.stderr
+    expected = f"ground truth {tmp_path}/bad_gt.txt: line 1 has 3 values, expected 4 numbers"
+    assert res.exit_code == 2 and expected in res.stderr
     (tmp_path / "bad.yaml").write_text("engine: {nope: 1}\n")
     res = invoke(runner, "register", src, tgt, "-c", tmp_path / "bad.yaml")
     assert res.exit_code == 2 and "engine.nope: unknown key" in res.stderr
