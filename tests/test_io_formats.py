@@ -137,6 +137,18 @@ def test_e57_merges_every_scan_with_its_pose(tmp_path):
     assert cloud.attributes["intensity"].shape == (500,)
 
 
+def test_e57_scan_with_an_invalid_pose_is_named(tmp_path):
+    """A zero quaternion would put every point at the scan's translation ("all points identical"):
+    the error names the scan and its pose instead."""
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    e = pye57.E57(str(tmp_path / "pose.e57"), mode="w")
+    e.write_scan_raw({"cartesianX": pts[:, 0], "cartesianY": pts[:, 1], "cartesianZ": pts[:, 2]},
+                     rotation=np.zeros(4), translation=np.array([1.0, 2.0, 3.0]))
+    e.close()
+    with pytest.raises(PointCloudError, match=r"pose\.e57: scan 0 has an invalid pose \(rotation quaternion"):
+        load_point_cloud(tmp_path / "pose.e57")
+
+
 def test_e57_corrupt_files_name_the_file_in_words(tmp_path):
     (tmp_path / "text.e57").write_text("1 2 3\n" * 50)
     with pytest.raises(PointCloudError, match=r"text\.e57: not an E57 file"):

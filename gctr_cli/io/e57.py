@@ -51,8 +51,14 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                 h = e57.get_header(i)
                 count = int(h.point_count)
                 fields = set(h.point_fields)
+                q, t = np.asarray(h.rotation, dtype=np.float64), np.asarray(h.translation, dtype=np.float64)
             except Exception as exc:  # noqa: BLE001
                 raise corrupt(exc, f"the header of scan {i} cannot be read") from None
+            if not (np.isfinite(q).all() and np.isfinite(t).all() and np.linalg.norm(q) > 1e-9):
+                # a zero quaternion would put every point of the scan at its translation
+                raise PointCloudError(f"{path}: scan {i} has an invalid pose (rotation quaternion "
+                                      f"{np.array2string(q, separator=', ')}, translation "
+                                      f"{np.array2string(t, separator=', ')}): its points cannot be placed")
             total += count
             headers.append(fields)
         if total > size:
