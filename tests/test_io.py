@@ -287,6 +287,19 @@ def test_ply_broken_headers(tmp_path, header, keyword):
     assert_error(ei, path, keyword)
 
 
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+def test_text_data_under_a_binary_header_is_named(tmp_path, cloud, ext):
+    """An ASCII body under a header that says binary would be read as garbage numbers."""
+    ascii_path, path = tmp_path / f"a{ext}", tmp_path / f"mislabelled{ext}"
+    save_point_cloud(ascii_path, cloud, binary=False)
+    data = ascii_path.read_bytes()
+    data = data.replace(b"format ascii", b"format binary_little_endian").replace(b"DATA ascii", b"DATA binary")
+    path.write_bytes(data)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "says", "binary", "numbers written as text")
+
+
 def test_ply_non_numeric_ascii_value(tmp_path):
     path = tmp_path / "word.ply"
     rows = "\n".join(f"{i} {i * i} {i % 3}" for i in range(20)).replace("9 81", "9 abc")

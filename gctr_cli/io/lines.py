@@ -15,12 +15,22 @@ import numpy as np
 
 from gctr_cli.io.errors import PointCloudError, quote
 
-__all__ = ["MAX_LINE", "LineReader", "parse_float", "read_rows"]
+__all__ = ["MAX_LINE", "LineReader", "numeric_text", "parse_float", "read_rows"]
 
 #: longest line accepted in a text body (bytes); a longer one means the file is not text we can read
 MAX_LINE = 1 << 20
 #: bytes read per block
 BLOCK = 1 << 22
+
+
+_NUMERIC_TEXT = frozenset(b"0123456789+-.eE \t\r\n")
+
+
+def numeric_text(data: bytes) -> bool:
+    """Whether ``data`` (the start of a data section) is numbers written as text: the bytes of binary
+    numbers are almost never all digits, signs, points and blanks, so a header that says binary over
+    such data was written for another format."""
+    return len(data) >= 16 and b"\n" in data and all(b in _NUMERIC_TEXT for b in data)
 
 
 def parse_float(tok: bytes) -> float | None:

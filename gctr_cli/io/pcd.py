@@ -18,7 +18,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.lines import LineReader, parse_float, read_rows
+from gctr_cli.io.lines import LineReader, numeric_text, parse_float, read_rows
 from gctr_cli.io.ply import format_columns, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]
@@ -83,6 +83,11 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                  for i in keep}
     elif hdr.data == "binary":
         point_size = hdr.point_size()
+        start = fh.tell()
+        if numeric_text(fh.read(256)):
+            raise PointCloudError(f"{path}: the PCD header says DATA binary but the data is numbers written as text "
+                                  "(write 'DATA ascii' in the header)")
+        fh.seek(start)
         if n * point_size > data_bytes:
             raise PointCloudError(
                 f"{path}: truncated: the header declares {n} points of {point_size} bytes but only "
