@@ -236,7 +236,9 @@ def main(verbose: int) -> None:
       3  batch --min-success: success rate below the threshold
       130/143  stopped by Ctrl-C / SIGTERM
 
-    -v / -vv go before or after the command: gctr -v batch ... or gctr batch ... -v
+    \b
+    -v / -vv go before or after the command:
+      gctr -v batch ...   or   gctr batch ... -v
     """
     click.get_current_context().meta[VERBOSITY] = verbose
     _setup_logging(verbose)
