@@ -356,6 +356,8 @@ def _print_report(text: str) -> None:
 
 def _stdout_to_devnull() -> None:
     """Point stdout at /dev/null so that later writes and the final flush do not fail again."""
+    if sys.stdout is None:
+        return
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, sys.stdout.fileno())
     os.close(devnull)
@@ -589,7 +591,14 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         if bar is not None:
             bar.close()
 
-    _print_summary(summary, config)
+    try:
+        _print_summary(summary, config)
+        if sys.stdout is not None:
+            sys.stdout.flush()
+    except OSError as exc:  # stdout full or gone (cron: > /dev/full, a reader that quit): the results are saved
+        if not isinstance(exc, BrokenPipeError):
+            logger.warning("cannot print the summary (%s); the results are in %s", exc.strerror or exc, outdir)
+        _stdout_to_devnull()
     if min_success is not None and summary.success_rate is not None and summary.success_rate < min_success:
         click.echo(
             f"gctr: success rate {100 * summary.success_rate:.1f}% is below --min-success "

@@ -173,7 +173,17 @@ def read_rows(path: Path, header: Sequence[str]) -> list[dict[str, str]]:
                 f"{path} does not look like a gctr output (header {','.join(got)[:120]!r}); "
                 "choose another output folder"
             )
-        return [dict(zip(header, row)) for row in reader if row]
+        rows = []
+        for row in reader:
+            if not row:
+                continue
+            if len(row) != len(header):  # a line damaged after it was written (a torn last line is cut before)
+                raise BatchError(
+                    f"{path}: line {reader.line_num} has {len(row)} cells, expected {len(header)}: the file was "
+                    "changed after gctr wrote it; repair or remove that line, or choose another output folder"
+                )
+            rows.append(dict(zip(header, row, strict=True)))
+        return rows
 
 
 def check_same_config(outdir: Path, config: Config) -> None:

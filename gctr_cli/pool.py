@@ -66,9 +66,10 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     for var in THREAD_ENV_VARS:
         os.environ[var] = "1"
     try:  # keep the parent's stdout clean (native libraries print warnings there)
-        sys.stdout.flush()
+        if sys.stdout is not None:  # None when the batch runs with stdout closed (cron: >&-)
+            sys.stdout.flush()
         os.dup2(2, 1)
-    except OSError:
+    except (OSError, ValueError):
         pass
 
     handler = _ListHandler()

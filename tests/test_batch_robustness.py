@@ -139,6 +139,18 @@ def test_resuming_a_folder_without_the_confidence_column_says_why(four_pairs, fa
         run_batch(four_pairs.specs(), fast_config, out, resume=True, register_fn=fake_engine.register)
 
 
+def test_resuming_a_folder_whose_transforms_csv_was_damaged_says_which_line(four_pairs, fast_config, tmp_path):
+    """A complete but malformed line (edited by hand, two files concatenated) is an error naming it,
+    not a KeyError; the folder is left as it was."""
+    out = tmp_path / "out"
+    run_batch(four_pairs.specs()[:2], fast_config, out, workers=1, register_fn=fake_engine.register)
+    damaged = (out / "transforms.csv").read_text() + "garbage,line\n"
+    (out / "transforms.csv").write_text(damaged)
+    with pytest.raises(BatchError, match=r"transforms\.csv: line 4 has 2 cells, expected \d+: the file was changed"):
+        run_batch(four_pairs.specs(), fast_config, out, resume=True, register_fn=fake_engine.register)
+    assert (out / "transforms.csv").read_text() == damaged and not (out / ".gctr.lock").exists()
+
+
 @pytest.mark.parametrize("existed", [False, True])
 def test_a_full_disk_while_setting_up_leaves_the_folder_as_it_was(four_pairs, fast_config, tmp_path, monkeypatch,
                                                                   existed):

@@ -8,6 +8,7 @@ Tests marked ``engine`` run the real GCTR engine end to end.
 from __future__ import annotations
 
 import functools
+import os
 import subprocess
 import textwrap
 from pathlib import Path
@@ -473,6 +474,29 @@ CLI_DRIVER = textwrap.dedent(
         cli.main(sys.argv[1:], prog_name="gctr")
     """
 )
+
+
+@pytest.mark.parametrize("stdout", ["closed", "full"])
+def test_batch_whose_stdout_is_closed_or_full_registers_every_pair(four_pairs, tmp_path, subprocess_env, stdout):
+    """Cron runs commands with stdout closed (>&-) or redirected anywhere: the workers must not die on
+    it (they did: every pair 'worker died'), and a summary that cannot be printed is a warning, not a
+    traceback and exit 1."""
+    driver = tmp_path / "gctr_driver.py"
+    driver.write_text(CLI_DRIVER.replace("fake_engine.slow_register", "fake_engine.register"))
+    out = tmp_path / "out"
+    cmd = [PYTHON, str(driver), "batch", str(four_pairs.manifest()), "-o", str(out), "-j", "2", "-q"]
+    if stdout == "closed":
+        done = subprocess.run(cmd, env=subprocess_env, stderr=subprocess.PIPE, text=True, timeout=300,
+                              preexec_fn=lambda: os.close(1))
+    else:
+        with open("/dev/full", "w") as full:
+            done = subprocess.run(cmd, env=subprocess_env, stdout=full, stderr=subprocess.PIPE, text=True,
+                                  timeout=300)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    rows = read_csv(out / "transforms.csv")[1]
+    assert len(rows) == len(four_pairs.rows) and {r["status"] for r in rows} == {"ok"}
+    if stdout == "full":
+        assert f"cannot print the summary (No space left on device); the results are in {out}" in done.stderr
 
 
 @pytest.mark.slow
