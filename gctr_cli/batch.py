@@ -54,6 +54,7 @@ from gctr_cli.outdir import (
     SNAPSHOTS_DIR,
     TRANSFORMS_FILE,
     Outputs,
+    output_written_at,
     prepare_outdir,
 )
 from gctr_cli.pair import RegisterFn, derive_seed, run_pair
@@ -101,6 +102,21 @@ def _check_pair_ids(pairs: Sequence[Any]) -> None:
     problem = pair_ids_problem(pairs, "it names files: matrices/<pair_id>.txt")
     if problem:
         raise BatchError(problem)
+
+
+def check_inputs_not_overwritten(pairs: Sequence[Any], outdir: str | Path, snapshots: bool, write_aligned: bool,
+                                 manifest: str | Path | None = None) -> None:
+    """Raise :class:`BatchError` (nothing run) when the batch would overwrite one of its own inputs."""
+    ids = {p.pair_id for p in pairs}
+    inputs = [(manifest, "it is the manifest")] if manifest is not None else []
+    for p in pairs:
+        inputs += [(p.source, f"pair {p.pair_id!r} reads it as its source"),
+                   (p.target, f"pair {p.pair_id!r} reads it as its target"),
+                   (p.gt, f"pair {p.pair_id!r} reads it as its ground truth")]
+    for path, role in inputs:
+        if path is not None and (what := output_written_at(path, outdir, ids, snapshots, write_aligned)):
+            raise BatchError(f"{path}: {role}, but the batch writes {what} there; move the file or choose "
+                             "another output folder (nothing was run)")
 
 
 def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> None:
@@ -151,6 +167,7 @@ def run_batch(
     t0 = time.monotonic()
     outdir = Path(outdir)
     _check_pair_ids(pairs)
+    check_inputs_not_overwritten(pairs, outdir, snapshots, write_aligned)
     check_executor(executor, scheduler)
     ref = register_ref(register_fn)
     n_workers = resolve_workers(workers, config)

@@ -541,6 +541,10 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         _die(str(exc))
     if min_success is not None and not any(p.gt is not None for p in pairs):
         _die(f"--min-success needs pairs with ground truth, but no pair of {manifest} has a gt file")
+    try:  # its own inputs (the manifest included) are never overwritten by the run
+        batch_mod.check_inputs_not_overwritten(pairs, outdir, snapshots, write_aligned, manifest=manifest)
+    except batch_mod.BatchError as exc:
+        _die(str(exc))
 
     from tqdm import tqdm
 

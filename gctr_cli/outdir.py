@@ -43,6 +43,7 @@ __all__ = [
     "SNAPSHOTS_DIR",
     "TRANSFORMS_FILE",
     "check_same_config",
+    "output_written_at",
     "prepare_outdir",
     "read_rows",
 ]
@@ -57,6 +58,30 @@ CONFIG_FILE = "config.yaml"
 #: every file and folder a batch writes into its output folder
 OUTPUT_NAMES = frozenset({TRANSFORMS_FILE, ERRORS_FILE, MATRICES_DIR, ALIGNED_DIR, SNAPSHOTS_DIR, REPORT_FILE,
                           CONFIG_FILE})
+
+
+def output_written_at(path: str | Path, outdir: str | Path, pair_ids: set[str], snapshots: bool,
+                      write_aligned: bool) -> str | None:
+    """What a batch into ``outdir`` would write at ``path`` (links and ``..`` resolved), or None: an
+    input file there (a manifest named ``tm_errors.csv``, ground truth kept in ``OUTDIR/matrices/``)
+    would be overwritten by the run it feeds."""
+    real, out = Path(os.path.realpath(path)), Path(os.path.realpath(outdir))
+    if real.parent == out and real.name in (TRANSFORMS_FILE, ERRORS_FILE, REPORT_FILE, CONFIG_FILE):
+        return real.name
+    if real.parent.parent != out:
+        return None
+    folder, stem = real.parent.name, real.name.rsplit(".", 1)[0]
+    if stem not in pair_ids:
+        return None
+    if folder == MATRICES_DIR and real.suffix == ".txt":
+        return f"{MATRICES_DIR}/{real.name} (the matrix of pair {stem!r})"
+    if folder == SNAPSHOTS_DIR and snapshots and real.suffix == ".png":
+        return f"{SNAPSHOTS_DIR}/{real.name} (the snapshot of pair {stem!r})"
+    if folder == ALIGNED_DIR and write_aligned:
+        return f"{ALIGNED_DIR}/{real.name} (the aligned cloud of pair {stem!r})"
+    return None
+
+
 #: start of the message of a pair whose outputs could not be written; ``--resume`` runs such pairs again
 OUTPUT_FAILURE = "cannot write its outputs: "
 

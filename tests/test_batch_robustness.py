@@ -151,6 +151,26 @@ def test_resuming_a_folder_whose_transforms_csv_was_damaged_says_which_line(four
     assert (out / "transforms.csv").read_text() == damaged and not (out / ".gctr.lock").exists()
 
 
+def test_a_batch_never_overwrites_its_own_inputs(four_pairs, fast_config, tmp_path):
+    """Ground truth kept in OUTDIR/matrices/<pair_id>.txt, a manifest named tm_errors.csv in OUTDIR:
+    refused before anything runs (exit 2), the files untouched."""
+    out = tmp_path / "out"
+    (out / "matrices").mkdir(parents=True)
+    specs = four_pairs.specs()
+    gt = out / "matrices" / f"{specs[1].pair_id}.txt"
+    gt.write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    specs[0] = PairSpec(specs[0].pair_id, specs[0].source, specs[0].target, gt)  # another pair's matrix name
+    with pytest.raises(BatchError, match=rf"{gt}: pair '{specs[0].pair_id}' reads it as its ground truth, but the "
+                                         rf"batch writes matrices/{specs[1].pair_id}\.txt"):
+        run_batch(specs, fast_config, out, workers=1, register_fn=fake_engine.register)
+    assert gt.read_text().startswith("1 0 0 0") and not (out / "transforms.csv").exists()
+
+    manifest = out / "tm_errors.csv"
+    manifest.write_bytes(four_pairs.manifest().read_bytes())
+    result = CliRunner().invoke(cli.main, ["batch", str(manifest), "-o", str(out), "-q"])
+    assert result.exit_code == 2 and "it is the manifest, but the batch writes tm_errors.csv there" in result.output
+
+
 @pytest.mark.parametrize("existed", [False, True])
 def test_a_full_disk_while_setting_up_leaves_the_folder_as_it_was(four_pairs, fast_config, tmp_path, monkeypatch,
                                                                   existed):
