@@ -100,6 +100,20 @@ def check_available() -> None:
         raise BatchError(f"the dask executor needs dask.distributed ({exc}); install it with: {INSTALL_HINT}") from None
 
 
+def check_scheduler_address(scheduler: str) -> None:
+    """Raise :class:`BatchError` for an address a client cannot even try (``tcp://HOST`` without its
+    port): distributed would raise only after a client half-built, whose clean-up then hangs a minute."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(scheduler)
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            parse_host_port(location)
+    except ValueError as exc:
+        raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {exc} "
+                         "(expected tcp://HOST:PORT, e.g. tcp://node-a:8786)") from None
+
+
 # ----------------------------------------------------------------------------------------------------
 # the task (runs on a worker)
 # ----------------------------------------------------------------------------------------------------

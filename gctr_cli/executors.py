@@ -35,9 +35,11 @@ def check_executor(executor: str, scheduler: str | None) -> None:
     if scheduler is not None and executor != "dask":
         raise BatchError("a scheduler address needs the dask executor (--executor dask)")
     if executor == "dask":
-        from gctr_cli.dask_executor import check_available
+        from gctr_cli.dask_executor import check_available, check_scheduler_address
 
         check_available()
+        if scheduler is not None:
+            check_scheduler_address(scheduler)
 
 
 def register_ref(register_fn: RegisterFn | str | None) -> str | None:

@@ -186,6 +186,11 @@ def test_cli_executor_usage_errors(four_pairs, tmp_path, monkeypatch):
     assert "cannot connect to the dask scheduler at tcp://127.0.0.1:9" in res.stderr
     assert not (tmp_path / "c" / "transforms.csv").exists() or read_csv(tmp_path / "c" / "transforms.csv")[1] == []
     assert not (tmp_path / "c" / batch.LOCK_NAME).exists()
+    # an address without its port: refused at once (distributed's half-built client hung a minute)
+    for address in ("tcp://127.0.0.1", "node-a"):
+        res = runner.invoke(cli.main, ["batch", manifest, "-o", str(tmp_path / "d"), "--scheduler", address])
+        assert res.exit_code == 2 and "missing port number" in res.stderr and "tcp://HOST:PORT" in res.stderr
+        assert not (tmp_path / "d").exists()
 
 
 def test_missing_dask_is_a_clear_error(monkeypatch, four_pairs, tmp_path):
