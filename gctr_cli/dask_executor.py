@@ -49,6 +49,7 @@ import contextlib
 import logging
 import math
 import os
+import signal
 import sys
 import threading
 import time
@@ -260,14 +261,30 @@ def _start_local_cluster(n_workers: int) -> Any:
                           "distributed.nanny.pre-spawn-environ": pre_spawn}), warnings.catch_warnings():
         # the scheduler's HTTP routes move off a busy port 8787 with a UserWarning: not our concern
         warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-        return LocalCluster(
-            n_workers=n_workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
-            env=env,
-        )
+        with _workers_ignore_ctrl_c():
+            return LocalCluster(
+                n_workers=n_workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
+                env=env,
+            )
+
+
+@contextlib.contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """Start processes that ignore SIGINT (Python keeps an ignored SIGINT in a new interpreter): a
+    Ctrl-C reaches the whole process group, and the workers printed a traceback each before the
+    batch shut them down. Stopping them is the batch's business, as with the local pool."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:

@@ -261,3 +261,54 @@ def test_the_local_clusters_malloc_settings_keep_a_users_dask_config():
     for users in ({"MALLOC_TRIM_THRESHOLD_": 0}, {"MALLOC_MMAP_THRESHOLD_": 1 << 20},
                   {"MALLOC_TRIM_THRESHOLD_": "65536", "MALLOC_MMAP_THRESHOLD_": "131072"}):
         assert dask_executor._pre_spawn_environment(users) == users
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_dask_batch_without_worker_tracebacks(dataset, tmp_path, subprocess_env):
+    """Ctrl-C reaches the whole process group: gctr's own LocalCluster workers ignore it (the batch
+    stops them), so stderr has gctr's one line, not a traceback per worker; resume finishes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import textwrap
+    import time
+
+    for i in range(6):
+        dataset.add_pair(f"p{i}")
+    driver = tmp_path / "gctr_driver.py"
+    driver.write_text(textwrap.dedent(
+        """
+        import functools, sys
+        from data_scripts import fake_engine
+        from gctr_cli import batch, cli
+
+        if __name__ == "__main__":
+            batch.run_batch = functools.partial(batch.run_batch, register_fn=fake_engine.slow_register)
+            cli.main(sys.argv[1:], prog_name="gctr")
+        """
+    ))
+    out = tmp_path / "out"
+    cmd = [sys.executable, str(driver), "batch", str(dataset.manifest()), "-o", str(out), "-j", "2", "-q",
+           "--executor", "dask"]
+    proc = subprocess.Popen(cmd, env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            t = out / "transforms.csv"
+            if t.exists() and t.read_bytes().count(b"\n") >= 2:
+                break
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: every process of the group
+        _stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGINT and "Traceback" not in stderr, stderr
+    assert "rerun with --resume" in stderr
+    done = subprocess.run(cmd + ["--resume"], env=subprocess_env, capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stderr
+    assert sorted(r["pair_id"] for r in read_csv(out / "transforms.csv")[1]) == [f"p{i}" for i in range(6)]
