@@ -129,7 +129,8 @@ class OutdirLock:
                 except FileExistsError:
                     pass
                 return
-            logger.warning("removed a stale lock %s left by %s (no longer running)", self.path, who)
+            logger.warning("removed a stale lock %s left by %s (that batch is no longer running; its pid may "
+                           "now be another process)", self.path, who)
         finally:
             try:
                 aside.unlink()

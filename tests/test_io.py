@@ -519,7 +519,7 @@ def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
 
     cases = {
         "blank.xyz": ("1 2 3\n4 5 6\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts)
-                      + "\n1,5 2,5 3,5\n", ["line 33", "non-numeric value '1,5'"]),
+                      + "\n1,5 2,5 3,5\n", ["line 33", "values look like decimal commas separated by blanks"]),
         "empty.csv.txt": ("\n".join(",".join(f"{v:.3f}" for v in p) + ",7" for p in pts[:10])
                           + "\n1.5,,2.5,7\n", ["line 11", "empty x, y or z value", "'1.5,,2.5,7'"]),
         "empty.dc.txt": ("\n".join(rows[:5]) + "\n1,5;;2,5\n", ["line 6", "empty x, y or z value"]),

@@ -40,10 +40,9 @@ MAX_LINE = 1 << 20
 #: bytes that make a block take the line-by-line path: characters that ``str.splitlines`` or
 #: ``str.split`` treat as line breaks or blanks but ``np.loadtxt`` may not, a lone ``\r``, comments
 _TEXT_SLOW_BYTES = re.compile(rb"[\x0b\x0c\x1c-\x1f\x85\xa0#_]|//|\r(?!\n)")
-#: the three dialects, each a byte translation decided on the first data line: blanks only (commas
-#: stay, so a stray one is an error, not a column); commas or semicolons between columns (-> blanks);
-#: tabs or semicolons between columns and decimal commas (commas -> points)
-_BLANK = bytes.maketrans(b"", b"")
+#: the two byte translations, decided on the first data line: commas or semicolons between columns
+#: (-> blanks; also for blank-separated files, whose lines may mix in commas); tabs or semicolons
+#: between columns and decimal commas (commas -> points)
 _PLAIN = bytes.maketrans(b",;", b"  ")
 _DECIMAL_COMMA = bytes.maketrans(b",;", b". ")
 _DEC_COMMA_TOKEN = re.compile(r"^[+-]?\d+,\d+(?:[eE][+-]?\d+)?$")
@@ -105,11 +104,11 @@ def _blocks(fh, path: Path) -> Iterator[bytes]:
         yield data[:cut] if carry else data
 
 
-def _fast(block: bytes, table: bytes) -> np.ndarray | None:
+def _fast(block: bytes, table: bytes, blank_separated: bool) -> np.ndarray | None:
     """x y z of a block of plain numeric lines via numpy's C parser; None if the block needs the
-    line-by-line path (comments, unusual separators, an empty cell, a bad line: that path gives the
-    exact error)."""
-    if _TEXT_SLOW_BYTES.search(block):
+    line-by-line path (comments, unusual separators, an empty cell, a comma in a blank-separated
+    file, a bad line: that path gives the exact error)."""
+    if _TEXT_SLOW_BYTES.search(block) or (blank_separated and b"," in block):
         return None
     if table in _SEPARATORS_AS_COMMAS:
         squeezed = block.translate(*_SEPARATORS_AS_COMMAS[table])
@@ -133,12 +132,13 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         raise PointCloudError(f"{path}: not a text point cloud (binary data found)")
     fh.seek(0)
     parts: list[np.ndarray] = []
-    state: dict[str, Any] = {"header": True, "seen_count_line": False, "table": _PLAIN, "count": None}
+    state: dict[str, Any] = {"header": True, "seen_count_line": False, "table": _PLAIN, "count": None,
+                             "blank": False}
     lines_before = 0
     for k, block in enumerate(_blocks(fh, path)):
         if k == 0 and block.startswith(b"\xef\xbb\xbf"):  # UTF-8 byte order mark
             block = block[3:]
-        arr = None if state["header"] else _fast(block, state["table"])
+        arr = None if state["header"] else _fast(block, state["table"], state["blank"])
         if arr is not None:
             n_lines = block.count(b"\n") + (not block.endswith(b"\n"))
         else:
@@ -162,8 +162,9 @@ def _dialect(line: str, path: Path, lineno: int) -> bytes:
     Tabs or semicolons between columns: commas are decimal commas unless this line uses them between
     columns too (a later ``1,5`` after a first line of whole numbers is then 1.5, and a later comma
     between columns is an error, never a silent split). Commas between columns: commas and
-    semicolons become blanks. Blanks only: commas stay, so that ``1,5 2,5 3,5`` later in the file is
-    an error instead of six columns."""
+    semicolons become blanks; the same for blanks between columns, where a later line may mix in
+    commas (``1.5,2.5,3.5``) but not decimal commas (``1,5 2,5 3,5`` is an error, not six columns:
+    :func:`_decimal_commas_between_blanks`)."""
     if ";" in line or "\t" in line:
         fields = [f.strip() for f in re.split(r"[;\t]", line) if f.strip()]
         if any("," in f and not _DEC_COMMA_TOKEN.match(f) for f in fields):
@@ -176,7 +177,12 @@ def _dialect(line: str, path: Path, lineno: int) -> bytes:
             f"({quote(line, 40)}), which cannot be told apart from comma-separated columns; export with "
             "'.' as the decimal separator, or separate the columns with tabs or semicolons"
         )
-    return _PLAIN if "," in line else _BLANK
+    return _PLAIN
+
+
+def _decimal_commas_between_blanks(line: str) -> bool:
+    """Whether one of the first three blank-separated values of ``line`` looks like a decimal comma."""
+    return any(_DEC_COMMA_TOKEN.match(t) for t in line.split(None, 3)[:3])
 
 
 def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tuple[np.ndarray, int]:
@@ -212,6 +218,7 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 continue
             state["header"] = False
             state["table"] = table
+            state["blank"] = not any(c in s for c in ",;\t")
             break
     lines = block.translate(state["table"]).decode("latin-1").splitlines()
 
@@ -232,6 +239,13 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
         s = lines[i].strip()
         if is_comment(s):
             continue
+        if state["blank"] and "," in raw_lines[i] and _decimal_commas_between_blanks(raw_lines[i]):
+            first_non_numeric(i)
+            raise PointCloudError(
+                f"{path}: line {lines_before + i + 1}: values look like decimal commas separated by blanks "
+                f"({quote(raw_lines[i].strip(), 40)}) in a file whose first point has none; export with '.' as "
+                "the decimal separator"
+            )
         if empty_cell and empty_cell.match(raw_lines[i].strip()):
             first_non_numeric(i)
             raise PointCloudError(
