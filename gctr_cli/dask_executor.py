@@ -9,12 +9,10 @@ order, ``--resume``, lock).
   (started by hand, by dask-jobqueue on Slurm/PBS/..., by dask-kubernetes, ...). Without one it starts a
   ``LocalCluster`` of ``n_workers`` processes with one thread each, which it closes at the end.
 * **Same work, same results.** Each task calls :func:`gctr_cli.pair.run_pair` with the seed derived
-  from the config seed and the pair id, exactly as a local worker does. Native thread pools are capped
-  to one thread inside every task (:func:`_single_threaded`): ``OMP_NUM_THREADS`` and friends are set
-  in the worker's environment (for pools created later), ``threadpoolctl`` limits the BLAS/OpenMP
-  libraries already loaded, and Open3D gets ``set_max_threads(1)``. So the transforms are identical
-  to the local pool's, bit for bit, whatever the workers' own settings. LocalCluster workers also get
-  the variables in their environment before they start.
+  from the config seed and the pair id, as a local worker does, with native thread pools capped to one
+  thread (:func:`_single_threaded`: ``OMP_NUM_THREADS`` and friends for pools created later,
+  ``threadpoolctl`` for loaded BLAS/OpenMP, Open3D's ``set_max_threads(1)``): the transforms equal the
+  local pool's bit for bit. LocalCluster workers get the variables before they start, and ignore Ctrl-C.
 * **Bounded submission.** At most twice as many tasks are in flight as the cluster has worker threads
   (at least one): one running and one waiting per thread, so memory stays bounded for any manifest size,
   and workers added to an adaptive cluster are used as they join. A worker plugin
@@ -49,7 +47,6 @@ import contextlib
 import logging
 import math
 import os
-import signal
 import sys
 import threading
 import time
@@ -62,7 +59,7 @@ from typing import Any
 from gctr_cli.allocator import malloc_environment
 from gctr_cli.config import Config
 from gctr_cli.errors import BatchError, ExecutorLost
-from gctr_cli.fsutil import THREAD_ENV_VARS
+from gctr_cli.fsutil import THREAD_ENV_VARS, processes_ignore_ctrl_c
 from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
 from gctr_cli.pair import limit_native_threads, resolve_register_fn, run_pair
 
@@ -99,20 +96,6 @@ def check_available() -> None:
         import distributed  # noqa: F401
     except ImportError as exc:
         raise BatchError(f"the dask executor needs dask.distributed ({exc}); install it with: {INSTALL_HINT}") from None
-
-
-def check_scheduler_address(scheduler: str) -> None:
-    """Raise :class:`BatchError` for an address a client cannot even try (``tcp://HOST`` without its
-    port): distributed would raise only after a client half-built, whose clean-up then hangs a minute."""
-    from distributed.comm.addressing import parse_address, parse_host_port
-
-    try:
-        scheme, location = parse_address(scheduler)
-        if scheme in ("tcp", "tls", "ws", "wss"):
-            parse_host_port(location)
-    except ValueError as exc:
-        raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {exc} "
-                         "(expected tcp://HOST:PORT, e.g. tcp://node-a:8786)") from None
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -261,7 +244,7 @@ def _start_local_cluster(n_workers: int) -> Any:
                           "distributed.nanny.pre-spawn-environ": pre_spawn}), warnings.catch_warnings():
         # the scheduler's HTTP routes move off a busy port 8787 with a UserWarning: not our concern
         warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-        with _workers_ignore_ctrl_c():
+        with processes_ignore_ctrl_c():
             return LocalCluster(
                 n_workers=n_workers,
                 threads_per_worker=1,
@@ -271,20 +254,6 @@ def _start_local_cluster(n_workers: int) -> Any:
                 env=env,
             )
 
-
-@contextlib.contextmanager
-def _workers_ignore_ctrl_c() -> Iterator[None]:
-    """Start processes that ignore SIGINT (Python keeps an ignored SIGINT in a new interpreter): a
-    Ctrl-C reaches the whole process group, and the workers printed a traceback each before the
-    batch shut them down. Stopping them is the batch's business, as with the local pool."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:

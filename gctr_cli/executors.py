@@ -22,7 +22,7 @@ from gctr_cli.errors import BatchError
 from gctr_cli.outcome import PairOutcome
 from gctr_cli.pair import RegisterFn, resolve_ref
 
-__all__ = ["EXECUTORS", "check_executor", "outcomes", "register_ref"]
+__all__ = ["EXECUTORS", "check_executor", "check_scheduler_address", "outcomes", "register_ref"]
 
 #: executors a batch can run its pairs on
 EXECUTORS = ("local", "dask")
@@ -35,11 +35,25 @@ def check_executor(executor: str, scheduler: str | None) -> None:
     if scheduler is not None and executor != "dask":
         raise BatchError("a scheduler address needs the dask executor (--executor dask)")
     if executor == "dask":
-        from gctr_cli.dask_executor import check_available, check_scheduler_address
+        from gctr_cli.dask_executor import check_available
 
         check_available()
         if scheduler is not None:
             check_scheduler_address(scheduler)
+
+
+def check_scheduler_address(scheduler: str) -> None:
+    """Raise :class:`BatchError` for an address a client cannot even try (``tcp://HOST`` without its
+    port): distributed would raise only after a client half-built, whose clean-up then hangs a minute."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(scheduler)
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            parse_host_port(location)
+    except ValueError as exc:
+        raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {exc} "
+                         "(expected tcp://HOST:PORT, e.g. tcp://node-a:8786)") from None
 
 
 def register_ref(register_fn: RegisterFn | str | None) -> str | None:

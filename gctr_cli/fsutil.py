@@ -90,6 +90,23 @@ def single_thread_env() -> Iterator[None]:
                 os.environ[var] = value
 
 
+@contextmanager
+def processes_ignore_ctrl_c() -> Iterator[None]:
+    """Worker processes started within ignore SIGINT (Python keeps an ignored SIGINT in a new
+    interpreter): a Ctrl-C reaches the whole process group, and dask's workers printed a traceback
+    each before the batch shut them down. Stopping workers is the batch's business."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def set_parent_death_signal() -> None:
     """Linux: this (child) process gets SIGKILL when its parent dies, so a killed batch or benchmark
     leaves no orphan computing. A no-op elsewhere or if ``prctl`` is unavailable."""
