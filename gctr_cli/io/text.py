@@ -111,7 +111,8 @@ def _fast(block: bytes, table: bytes, blank_separated: bool) -> np.ndarray | Non
     if _TEXT_SLOW_BYTES.search(block) or (blank_separated and b"," in block):
         return None
     if table in _SEPARATORS_AS_COMMAS:
-        squeezed = block.translate(*_SEPARATORS_AS_COMMAS[table])
+        plain_csv = table == _PLAIN and not any(c in block for c in (b" ", b"\t", b";"))
+        squeezed = block if plain_csv else block.translate(*_SEPARATORS_AS_COMMAS[table])  # a copy only if needed
         if b",," in squeezed or b"\n," in squeezed or squeezed.startswith(b","):
             return None
     with warnings.catch_warnings():
