@@ -300,6 +300,18 @@ def test_text_data_under_a_binary_header_is_named(tmp_path, cloud, ext):
     assert_error(ei, path, "says", "binary", "numbers written as text")
 
 
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+def test_ascii_rows_beyond_the_declared_count_are_named(tmp_path, cloud, ext, caplog):
+    """A header that declares fewer points than the data holds is read as declared, with a warning
+    (it went unnoticed): the count may be the mistake, or the extra lines."""
+    path = tmp_path / f"more{ext}"
+    save_point_cloud(path, cloud, binary=False)
+    path.write_bytes(path.read_bytes() + b"0.5 0.5 0.5\n\n1 2 3\n")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        np.testing.assert_array_equal(load_point_cloud(path), cloud)
+    assert f"{path}: 2 more data lines after the {len(cloud)}" in caplog.text
+
+
 def test_ply_non_numeric_ascii_value(tmp_path):
     path = tmp_path / "word.ply"
     rows = "\n".join(f"{i} {i * i} {i % 3}" for i in range(20)).replace("9 81", "9 abc")

@@ -105,6 +105,15 @@ class LineReader:
         data, k = self.take(1)
         return data.rstrip(b"\r\n") if k else None
 
+    def lines_left(self) -> int:
+        """How many non-blank lines follow (read to the end): data a header did not declare."""
+        n = 0
+        while True:
+            data, k = self.take(1 << 16)
+            if not k:
+                return n
+            n += sum(1 for ln in data.splitlines() if ln.strip())
+
 
 def _fast_block(block: bytes, n_values: int) -> np.ndarray | None:
     """The rows of a block of plain numeric lines via numpy's C parser, or None (slow path decides)."""

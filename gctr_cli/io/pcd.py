@@ -76,7 +76,11 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                 f"{path}: truncated or corrupt: the header declares {n} points of {ncols} values (at least "
                 f"2 bytes per value) but only {data_bytes} bytes follow the header"
             )
-        rows = read_rows(LineReader(fh, path, hdr.lines), n, ncols, "point", "points")
+        reader = LineReader(fh, path, hdr.lines)
+        rows = read_rows(reader, n, ncols, "point", "points")
+        if extra := reader.lines_left():
+            logger.warning("%s: %d more data lines after the %d points the header declares (ignored)", path,
+                           extra, n)
         starts = np.cumsum([0] + hdr.counts[:-1])
         # x y z keep the text's value (float64); attributes get their declared type
         table = {hdr.fields[i]: rows[:, starts[i]] if hdr.fields[i] in "xyz" else rows[:, starts[i]].astype(dtypes[i])

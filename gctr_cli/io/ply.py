@@ -12,6 +12,7 @@ announces); list lengths must be non-negative and fit in the file.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +23,8 @@ from gctr_cli.io.errors import PointCloudError, quote
 from gctr_cli.io.lines import LineReader, numeric_text, parse_float, read_rows
 
 __all__ = ["ply_bytes", "read_ply"]
+
+logger = logging.getLogger("gctr_cli.io")
 
 MAX_HEADER_BYTES = 1 << 20
 MAX_HEADER_LINE = 1 << 16
@@ -205,9 +208,14 @@ def _read_ascii(path: Path, fh, elements: list[_Element], vidx: int, header_line
     vertex = elements[vidx]
     if not vertex.has_list:
         rows = read_rows(reader, vertex.count, len(vertex.props), "vertex", "vertices")
-        return {p.name: rows[:, i] for i, p in enumerate(vertex.props)}
-    want = tuple(p.name for p in vertex.props if p.count_dtype is None)
-    return _ascii_list_element(reader, vertex, want)
+        table = {p.name: rows[:, i] for i, p in enumerate(vertex.props)}
+    else:
+        want = tuple(p.name for p in vertex.props if p.count_dtype is None)
+        table = _ascii_list_element(reader, vertex, want)
+    if vidx == len(elements) - 1 and (extra := reader.lines_left()):  # nothing may follow the last element
+        logger.warning("%s: %d more data lines after the %d vertices the header declares (ignored)", path, extra,
+                       vertex.count)
+    return table
 
 
 def _ascii_list_element(reader: LineReader, el: _Element, want: tuple[str, ...]) -> dict[str, np.ndarray]:
