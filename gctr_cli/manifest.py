@@ -135,8 +135,9 @@ def read_manifest(path: str | Path) -> list[PairSpec]:
         pairs: list[PairSpec] = []
         errors: list[str] = []
         seen: dict[str, int] = {}
+        end = header_line
         for row in reader:
-            line = reader.line_num
+            line, end = end + 1, reader.line_num  # a quoted cell may span lines: name the record's first
             if not any(c.strip() for c in row):
                 continue
             cells = {c: (row[i].strip() if i < len(row) else "") for c, i in idx.items()}

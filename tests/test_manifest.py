@@ -324,3 +324,13 @@ def test_build_skips_unsafe_stems(tmp_path, caplog):
         pairs = build_manifest(src, tgt)
     assert [p.pair_id for p in pairs] == ["good"]
     assert "bad..name" in caplog.text
+
+
+def test_a_record_spanning_lines_is_named_by_its_first_line(tmp_path):
+    """A quoted cell may hold a line break: the problem is reported at the line where its record starts."""
+    path = tmp_path / "pairs.csv"
+    path.write_text('pair_id,source,target\na,x.ply,y.ply\n\n"c\nd",x.ply,y.ply\ne,x.ply\n', newline="")
+    with pytest.raises(ManifestError) as ei:
+        read_manifest(path)
+    assert "line 4: pair_id 'c\\nd' contains a control character" in str(ei.value)
+    assert "line 6: empty 'target' cell" in str(ei.value)
