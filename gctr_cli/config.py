@@ -228,7 +228,8 @@ class EngineConfig(_Strict):
         "when no search run ended at the answer (support 0); 0 = never (then use min_confidence >= 0.4: the "
         "default threshold counts on this search)")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
-    scale_bounds: tuple[float, float] = Field((0.1, 10.0), description="accepted range of the source->target scale")
+    scale_bounds: tuple[float, Annotated[float, Field(allow_inf_nan=True)]] = Field(
+        (0.1, 10.0), description="accepted range of the source->target scale (high may be .inf: no upper bound)")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(
@@ -259,7 +260,7 @@ class EngineConfig(_Strict):
     @field_validator("scale_bounds")
     @classmethod
     def _bounds_order(cls, value: tuple[float, float]) -> tuple[float, float]:
-        if not 0.0 < value[0] < value[1]:
+        if not 0.0 < value[0] < value[1]:  # also refuses a NaN high
             raise ValueError("scale_bounds must be [low, high] with 0 < low < high")
         return value
 
