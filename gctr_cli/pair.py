@@ -34,6 +34,9 @@ __all__ = ["RegisterFn", "default_register", "derive_seed", "limit_native_thread
 
 #: ``runtime_s`` of a pair whose engine never ran (an unreadable cloud or ground truth)
 NOT_RUN = 0.0
+#: the errors against ground truth leave out points farther than this many 90th-percentile distances
+#: from the median (far stray points; wide enough to keep a LiDAR sweep's sparse far returns)
+METRIC_SPREAD = 10.0
 
 
 def derive_seed(base_seed: int, pair_id: str) -> int:
@@ -153,6 +156,7 @@ def _load_other_clouds(spec: Any, clouds: dict[str, np.ndarray]) -> None:
 def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: int | None,
               clouds: dict[str, np.ndarray]) -> PairOutcome:
     """:func:`run_pair` without the snapshot; the loaded clouds are left in ``clouds``."""
+    from gctr_cli.geometry import robust_core
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
     from gctr_cli.metrics import is_similarity, transform_errors
 
@@ -219,8 +223,11 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
             )
         errors = success = None
         if T_gt is not None:
-            diagonal = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
-            errors = transform_errors(T, T_gt, diagonal, source_centre=source.mean(axis=0))
+            # without far stray points (a 0 0 0 beside UTM coordinates): one point must not make a
+            # wrong matrix a success by inflating the diagonal, nor move where translation is measured
+            core_t, core_s = robust_core(target, METRIC_SPREAD), robust_core(source, METRIC_SPREAD)
+            diagonal = float(np.linalg.norm(core_t.max(axis=0) - core_t.min(axis=0)))
+            errors = transform_errors(T, T_gt, diagonal, source_centre=core_s.mean(axis=0))
             s = config.success
             success = errors.success(s.rotation_deg, s.translation_rel, s.scale)
         return PairOutcome(

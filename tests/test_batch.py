@@ -85,6 +85,24 @@ def test_run_pair_in_process_recovers_gt(four_pairs, fast_config):
     assert run_pair(specs["pcd_xyz"], fast_config, fake_engine.register, seed=5).seed == 5
 
 
+def test_a_stray_far_point_does_not_turn_a_wrong_matrix_into_a_success(four_pairs, fast_config, tmp_path):
+    """The errors against ground truth leave far stray points out: one 1e6 away in the target used to
+    inflate the diagonal so much that a matrix 87% of it off counted as a success."""
+    from gctr_cli.io import write_matrix
+    from gctr_cli.manifest import PairSpec
+
+    spec = {s.pair_id: s for s in four_pairs.specs()}["pcd_xyz"]
+    target = load_point_cloud(spec.target)
+    diag = float(np.linalg.norm(target.max(0) - target.min(0)))
+    wrong = four_pairs.gt["pcd_xyz"].copy()
+    wrong[0, 3] += 0.3 * diag  # the engine's (right) answer is 30% of the diagonal from this "truth"
+    write_matrix(tmp_path / "wrong.txt", wrong)
+    stray = write_cloud(tmp_path / "stray.ply", np.vstack([target, target.mean(0) + [1e6 * diag, 0.0, 0.0]]))
+    for tgt in (spec.target, stray):
+        out = run_pair(PairSpec("p", spec.source, tgt, tmp_path / "wrong.txt"), fast_config, fake_engine.register)
+        assert out.ok and out.success is False and out.errors.trans_err_rel > 0.25, (tgt, out.errors)
+
+
 @pytest.mark.parametrize(
     "gt_text, expected",
     [
