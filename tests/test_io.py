@@ -528,6 +528,16 @@ def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
     rows = [";".join(f"{v:.3f}".replace(".", ",") for v in p) for p in pts]
     path.write_text("12;-80;41\n" + "\n".join(rows) + "\n")
     np.testing.assert_allclose(load_point_cloud(path), np.vstack([[12, -80, 41], pts]))
+    readable = {  # runs of tabs align columns; headers may start with a number; an empty later column
+        "tabs.txt": "\n".join("\t\t".join(f"{v:.3f}" for v in p) for p in pts),
+        "header.xyz": "20 points\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts),
+        "nan_header.xyz": "nan x y\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts),
+        "later_empty.txt": "\n".join(",".join(f"{v:.3f}" for v in p) + ",,7" for p in pts),
+    }
+    for name, text in readable.items():
+        path = tmp_path / name
+        path.write_text(text + "\n")
+        np.testing.assert_allclose(load_point_cloud(path), pts, atol=5e-4, err_msg=name)
 
     cases = {
         "blank.xyz": ("1 2 3\n4 5 6\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts)
@@ -543,7 +553,7 @@ def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
                          + "\n12\n1 2 3\n", ["line 32 has 1 column(s)", "multi-section PTS"]),
     }
     big = np.round(rng.normal(size=(6000, 3)), 6)  # past the first 64 KiB block: numpy's fast path
-    lines = [",".join(f"{v:.6f}" for v in p) for p in big]
+    lines = [",".join(f"{v:.6f}" for v in p) + ",,7" for p in big]  # empty later columns are fine
     lines[5000] = lines[5000].replace(",", ",,", 1)
     cases["empty_late.txt"] = ("\n".join(lines) + "\n", ["line 5001", "empty x, y or z value"])
     for name, (text, keywords) in cases.items():

@@ -109,14 +109,15 @@ def normalise(points: np.ndarray) -> NormalisedCloud:
 
 def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     """One int64 key per point identifying its voxel (a 1-D key makes ``np.unique`` fast)."""
-    ijk = np.floor(points / size).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    dims = ijk.max(axis=0) + 1
+    cells = np.floor(points / size)
+    cells -= cells.min(axis=0)
+    dims = cells.max(axis=0) + 1
     if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
-        # A far outlier spans a grid whose flat index would overflow int64 (and merge voxels
-        # silently): number the occupied voxels instead.
-        return np.unique(ijk, axis=0, return_inverse=True)[1].reshape(-1)
-    return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        # A far outlier spans a grid whose flat index (or even a cell index) would overflow int64
+        # and merge voxels silently: number the occupied cells instead.
+        return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
+    ijk, d = cells.astype(np.int64), dims.astype(np.int64)
+    return (ijk[:, 0] * d[1] + ijk[:, 1]) * d[2] + ijk[:, 2]
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:

@@ -86,7 +86,10 @@ def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> None:
     core = robust_core(pts)
     outliers = f", apart from {n - len(core)} far outlier(s)" if len(core) < n else ""
     if (core == core[0]).all():
-        raise PointCloudError(f"{path}: degenerate cloud: all {len(core)} points{dropped} are identical{outliers}")
+        if len(core) == n:
+            raise PointCloudError(f"{path}: degenerate cloud: all {n} points{dropped} are identical")
+        raise PointCloudError(f"{path}: degenerate cloud: {len(core)} of its {n} points{dropped} are identical; "
+                              f"the other {n - len(core)} lie far from them")
     elif _collinear(core):
         raise PointCloudError(
             f"{path}: degenerate cloud: points are collinear ({len(core)} points{dropped} on one line{outliers})"

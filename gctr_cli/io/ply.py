@@ -168,8 +168,9 @@ def _parse_header(fh, path: Path) -> tuple[str, list[_Element], int]:
         elif key == "property":
             if not elements:
                 raise bad("property before any element")
-            if elements[-1].name == "vertex" and words[-1] in {p.name for p in elements[-1].props}:
-                # which copy would be read is a guess; other elements are skipped, so only the vertex's matter
+            names = {p.name for p in elements[-1].props}
+            if elements[-1].name == "vertex" and words[-1] in ("x", "y", "z") and words[-1] in names:
+                # which copy is the coordinate would be a guess (a duplicate attribute keeps its last copy)
                 raise bad(f"duplicate vertex property {quote(words[-1])}")
             if len(words) == 5 and words[1] == "list":
                 ct, it = PLY_TYPES.get(words[2]), PLY_TYPES.get(words[3])

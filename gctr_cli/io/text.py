@@ -46,18 +46,19 @@ _TEXT_SLOW_BYTES = re.compile(rb"[\x0b\x0c\x1c-\x1f\x85\xa0#_]|//|\r(?!\n)")
 _PLAIN = bytes.maketrans(b",;", b"  ")
 _DECIMAL_COMMA = bytes.maketrans(b",;", b". ")
 _DEC_COMMA_TOKEN = re.compile(r"^[+-]?\d+,\d+(?:[eE][+-]?\d+)?$")
-#: a line whose x, y or z cell is empty (two separators in a row among the first three columns),
-#: which the translation to blanks would otherwise close up, shifting the columns silently
+#: a line whose x, y or z cell is empty (two commas or semicolons in a row among the first three
+#: columns), which the translation to blanks would otherwise close up, shifting the columns silently;
+#: blanks and tabs, runs of which align columns, never make an empty cell
 _EMPTY_CELL = {
     _PLAIN: r"^[ \t]*(?:[^,;\s]+[ \t]*[,;][ \t]*){0,2}[,;]",
-    _DECIMAL_COMMA: r"^[ \t]*(?:[^;\s]+[ \t]*[;\t][ \t]*){0,2}[;\t]",
+    _DECIMAL_COMMA: r"^[ \t]*(?:[^;\s]+[ \t]*;[ \t]*){0,2};",
 }
 _EMPTY_CELL_TEXT = {table: re.compile(pattern) for table, pattern in _EMPTY_CELL.items()}
+_EMPTY_CELL_BYTES = {table: re.compile(pattern.encode(), re.M) for table, pattern in _EMPTY_CELL.items()}
 #: the quick test for a block: its separators as commas, blanks between them deleted (translation
-#: and deletion), so that two separators in a row anywhere show as ",," (the line path then checks
-#: whether the empty cell is among x y z)
+#: and deletion), so that two separators in a row anywhere show as ",,"; only then the exact test
 _SEPARATORS_AS_COMMAS = {_PLAIN: (bytes.maketrans(b";", b","), b" \t"),
-                         _DECIMAL_COMMA: (bytes.maketrans(b",;\t", b".,,"), b" ")}
+                         _DECIMAL_COMMA: (bytes.maketrans(b",;", b".,"), b" \t")}
 
 
 def _is_number(tok: str) -> bool:
@@ -113,7 +114,8 @@ def _fast(block: bytes, table: bytes, blank_separated: bool) -> np.ndarray | Non
     if table in _SEPARATORS_AS_COMMAS:
         plain_csv = table == _PLAIN and not any(c in block for c in (b" ", b"\t", b";"))
         squeezed = block if plain_csv else block.translate(*_SEPARATORS_AS_COMMAS[table])  # a copy only if needed
-        if b",," in squeezed or b"\n," in squeezed or squeezed.startswith(b","):
+        if (b",," in squeezed or b"\n," in squeezed or squeezed.startswith(b",")) \
+                and _EMPTY_CELL_BYTES[table].search(block):  # an empty x, y or z (not a later column)
             return None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "input contained no data" for blank blocks
@@ -181,6 +183,14 @@ def _dialect(line: str, path: Path, lineno: int) -> bytes:
     return _PLAIN
 
 
+def _header_line(toks: list[str]) -> bool:
+    """Whether a leading line of these words is a header to skip: it starts with a word, or has at most
+    one number among its first three words ("X Y Z", "20 points", "1.0 ASCII export"). "0.1 0.2 0.x3"
+    is a bad data line (reported as such), "20" alone a point-count line."""
+    numbers = sum(_is_number(t) for t in toks[:3])
+    return not _is_number(toks[0]) or (len(toks) > 1 and numbers < 2)
+
+
 def _decimal_commas_between_blanks(line: str) -> bool:
     """Whether one of the first three blank-separated values of ``line`` looks like a decimal comma."""
     return any(_DEC_COMMA_TOKEN.match(t) for t in line.split(None, 3)[:3])
@@ -207,7 +217,7 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 continue
             table = _dialect(s, path, lines_before + start + 1)
             toks = s.encode("latin-1").translate(table).decode("latin-1").split()
-            if not _is_number(toks[0]):  # a header line ("X Y Z", "//X,Y,Z"); "0.1 0.2 0.x3" is a bad data line
+            if _header_line(toks):
                 start += 1
                 continue
             if len(toks) == 1 and not state["seen_count_line"]:
