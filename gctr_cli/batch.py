@@ -54,6 +54,7 @@ from gctr_cli.outdir import (
     SNAPSHOTS_DIR,
     TRANSFORMS_FILE,
     Outputs,
+    aligned_path,
     output_written_at,
     prepare_outdir,
 )
@@ -108,13 +109,14 @@ def check_inputs_not_overwritten(pairs: Sequence[Any], outdir: str | Path, snaps
                                  manifest: str | Path | None = None) -> None:
     """Raise :class:`BatchError` (nothing run) when the batch would overwrite one of its own inputs."""
     ids = {p.pair_id for p in pairs}
+    aligned = {p.pair_id: aligned_path(Path(outdir), p.pair_id, p.source).name for p in pairs}
     inputs = [(manifest, "it is the manifest")] if manifest is not None else []
     for p in pairs:
         inputs += [(p.source, f"pair {p.pair_id!r} reads it as its source"),
                    (p.target, f"pair {p.pair_id!r} reads it as its target"),
                    (p.gt, f"pair {p.pair_id!r} reads it as its ground truth")]
     for path, role in inputs:
-        if path is not None and (what := output_written_at(path, outdir, ids, snapshots, write_aligned)):
+        if path is not None and (what := output_written_at(path, outdir, ids, snapshots, write_aligned, aligned)):
             raise BatchError(f"{path}: {role}, but the batch writes {what} there; move the file or choose "
                              "another output folder (nothing was run)")
 
@@ -171,6 +173,14 @@ def run_batch(
     check_executor(executor, scheduler)
     ref = register_ref(register_fn)
     n_workers = resolve_workers(workers, config)
+    recorded = False  # this run recorded a pair, or finished: the paths it prints must exist
+
+    def note(outcome: PairOutcome) -> None:
+        nonlocal recorded
+        recorded = True
+        if on_outcome is not None:
+            on_outcome(outcome)
+
     try:
         created = _missing_folders(outdir)
         outdir.mkdir(parents=True, exist_ok=True)
@@ -184,15 +194,17 @@ def run_batch(
             raise BatchError(f"cannot set up output folder {outdir}: {exc.strerror or exc_message(exc)}; nothing "
                              "was run") from exc
         try:
-            return _run_locked(pairs, config, outdir, resume, n_workers, ref, executor, scheduler, snapshots,
-                               write_aligned, on_start, on_outcome, t0)
+            summary = _run_locked(pairs, config, outdir, resume, n_workers, ref, executor, scheduler, snapshots,
+                                  write_aligned, on_start, note, t0)
+            recorded = True
+            return summary
         finally:
             lock.release()
     finally:
-        # The folders this run created, if it left nothing in them. While OUTDIR holds results, the
-        # folders on the way to it as written stay too (``new/../results`` keeps an empty ``new``),
-        # or the paths the summary prints would not exist.
-        if not (outdir / "transforms.csv").exists():
+        # The folders this run created, if it left nothing in them; after a run that recorded pairs,
+        # the folders on the way to OUTDIR as written stay too (``new/../results`` keeps an empty
+        # ``new``), or the paths the summary prints would not exist.
+        if not recorded:
             for folder in created:
                 _remove_if_empty(folder)
 

@@ -200,8 +200,9 @@ def run() -> None:
         code = 1
     logging.shutdown()
     try:
-        sys.stdout.flush()
-    except BrokenPipeError:
+        if sys.stdout is not None:
+            sys.stdout.flush()
+    except OSError:
         _stdout_to_devnull()
     sys.stderr.flush()
     os._exit(code or 0)
@@ -345,12 +346,18 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
 
 
 def _print_report(text: str) -> None:
-    """``text`` on stdout. A reader that stopped early (``gctr register … | head -1``) is not an
-    error: the rest is dropped and the exit code stays the registration's."""
+    """``text`` on stdout, after the command's files are written. A stdout that is closed, full or
+    read by a reader that stopped early (``gctr register … | head -1``) is not an error of the
+    command: the rest is dropped (with a warning unless the reader just quit) and the exit code
+    stays the command's."""
+    if sys.stdout is None:  # closed (>&-)
+        return
     try:
         click.echo(text, nl=False)
         sys.stdout.flush()
-    except BrokenPipeError:
+    except OSError as exc:
+        if not isinstance(exc, BrokenPipeError):
+            logger.warning("cannot print the result (%s)", exc.strerror or exc)
         _stdout_to_devnull()
 
 
@@ -430,7 +437,7 @@ def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the 
         moved = write_aligned(input, T, output)
     except (PointCloudError, MatrixError) as exc:
         _die(str(exc))
-    click.echo(f"wrote {output} ({len(moved)} points)")
+    _print_report(f"wrote {output} ({len(moved)} points)\n")
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -61,10 +61,12 @@ OUTPUT_NAMES = frozenset({TRANSFORMS_FILE, ERRORS_FILE, MATRICES_DIR, ALIGNED_DI
 
 
 def output_written_at(path: str | Path, outdir: str | Path, pair_ids: set[str], snapshots: bool,
-                      write_aligned: bool) -> str | None:
+                      write_aligned: bool, aligned_names: dict[str, str] | None = None) -> str | None:
     """What a batch into ``outdir`` would write at ``path`` (links and ``..`` resolved), or None: an
     input file there (a manifest named ``tm_errors.csv``, ground truth kept in ``OUTDIR/matrices/``)
-    would be overwritten by the run it feeds."""
+    would be overwritten by the run it feeds. ``aligned_names``: each pair's ``aligned/`` file name
+    (:func:`aligned_path`)."""
+    aligned_names = aligned_names or {}
     real, out = Path(os.path.realpath(path)), Path(os.path.realpath(outdir))
     if real.parent == out and real.name in (TRANSFORMS_FILE, ERRORS_FILE, REPORT_FILE, CONFIG_FILE):
         return real.name
@@ -77,7 +79,7 @@ def output_written_at(path: str | Path, outdir: str | Path, pair_ids: set[str], 
         return f"{MATRICES_DIR}/{real.name} (the matrix of pair {stem!r})"
     if folder == SNAPSHOTS_DIR and snapshots and real.suffix == ".png":
         return f"{SNAPSHOTS_DIR}/{real.name} (the snapshot of pair {stem!r})"
-    if folder == ALIGNED_DIR and write_aligned:
+    if folder == ALIGNED_DIR and write_aligned and real.name in aligned_names.get(stem, ()):
         return f"{ALIGNED_DIR}/{real.name} (the aligned cloud of pair {stem!r})"
     return None
 

@@ -296,6 +296,12 @@ def test_a_finished_run_keeps_the_folders_on_the_path_it_was_given(four_pairs, f
     monkeypatch.chdir(tmp_path)
     run_batch(four_pairs.specs(), fast_config, "new/../results", workers=1, register_fn=fake_engine.register)
     assert (tmp_path / "new").is_dir() and os.path.isfile("new/../results/transforms.csv")
+    # a run refused before it ran anything removes what it created on the way, results or not
+    other = fast_config.model_copy(update={"seed": fast_config.seed + 1})
+    with pytest.raises(BatchError, match="cannot resume: the config differs"):
+        run_batch(four_pairs.specs(), other, "new2/../results", resume=True, workers=1,
+                  register_fn=fake_engine.register)
+    assert not (tmp_path / "new2").exists() and (tmp_path / "results" / "transforms.csv").is_file()
 
 
 def test_an_output_folder_name_the_system_refuses_is_exit_2(four_pairs, tmp_path, fake_batch):

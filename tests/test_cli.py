@@ -710,6 +710,32 @@ def test_register_whose_reader_stops_early_keeps_its_exit_code(tmp_path, subproc
     assert stderr == "" and read_matrix(tmp_path / "m.txt").shape == (4, 4)
 
 
+@pytest.mark.parametrize("stdout", ["closed", "full"])
+def test_register_and_apply_with_stdout_closed_or_full_write_their_files(tmp_path, subprocess_env, stdout):
+    """Cron may close stdout or point it at a full disk: the files are written, the exit code is the
+    command's, and a summary that cannot be printed is one warning (no traceback)."""
+    manifest, _ = _real_pairs(tmp_path / "data")
+    row = read_csv(manifest)[1][0]
+    src, tgt = tmp_path / "data" / row["source"], tmp_path / "data" / row["target"]
+
+    def run(*args):
+        cmd = [PYTHON, "-m", "gctr_cli", *map(str, args)]
+        if stdout == "closed":
+            return subprocess.run(cmd, env=subprocess_env, stderr=subprocess.PIPE, text=True, timeout=300,
+                                  preexec_fn=lambda: os.close(1))
+        with open("/dev/full", "w") as full:
+            return subprocess.run(cmd, env=subprocess_env, stdout=full, stderr=subprocess.PIPE, text=True,
+                                  timeout=300)
+
+    for args, out in ((("register", src, tgt, "-o", tmp_path / "m.txt"), tmp_path / "m.txt"),
+                      (("apply", tmp_path / "m.txt", src, "-o", tmp_path / "moved.ply"), tmp_path / "moved.ply")):
+        done = run(*args)
+        assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+        assert out.is_file()
+        warned = "cannot print the result (No space left on device)" in done.stderr
+        assert warned == (stdout == "full"), done.stderr
+
+
 def test_register_sets_up_the_allocator(runner, fake_register, four_pairs, monkeypatch):
     import gctr_cli.allocator
 
