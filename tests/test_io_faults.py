@@ -187,6 +187,15 @@ def test_a_file_name_with_control_characters_is_cleaned_too(tmp_path):
     assert "bad?name?.ply: not a PLY file" in str(ei.value)
 
 
+def test_a_file_name_that_is_not_utf8_is_shown_with_a_replacement_character(tmp_path):
+    path = Path(os.fsdecode(os.fsencode(tmp_path) + b"/bad\xffname.ply"))  # a lone surrogate in the str
+    path.write_bytes(b"not a ply")
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert "bad\ufffdname.ply: not a PLY file" in str(ei.value)
+    str(ei.value).encode("utf-8")  # printable and writable to a UTF-8 CSV cell
+
+
 # ----------------------------------------------------------------------------------------------------
 # symbolic links: judged by the name the user gave
 # ----------------------------------------------------------------------------------------------------

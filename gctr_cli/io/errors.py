@@ -16,13 +16,16 @@ MAX_MESSAGE = 600
 #: longest quoted token (a property name, a bad value) inside a message
 MAX_TOKEN = 40
 
+# the lone surrogates that stand for undecodable bytes in a file name (os.fsdecode's surrogateescape)
+_SURROGATE = re.compile("[\ud800-\udfff]")
 # C0 and C1 control characters, DEL, and the Unicode line/paragraph separators and bidi controls
 _CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029\u200e\u200f\u202a-\u202e\u2066-\u2069]")
 
 
 def clean(text: object, limit: int = MAX_MESSAGE) -> str:
-    """``text`` with every control character replaced by ``?`` and cut to ``limit`` characters."""
-    s = _CONTROL.sub("?", str(text))
+    """``text`` with every control character replaced by ``?``, every undecodable byte of a file name
+    (a lone surrogate) by U+FFFD, and cut to ``limit`` characters."""
+    s = _CONTROL.sub("?", _SURROGATE.sub("\ufffd", str(text)))
     return s if len(s) <= limit else s[: max(limit - 3, 0)] + "..."
 
 
