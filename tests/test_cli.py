@@ -499,10 +499,27 @@ def test_batch_whose_stdout_is_closed_or_full_registers_every_pair(four_pairs, t
         assert f"cannot print the summary (No space left on device); the results are in {out}" in done.stderr
 
 
+def _signal_when(proc: subprocess.Popen, ready, sig: int, timeout: float = 60) -> str:
+    """Send ``sig`` to ``proc`` once ``ready()`` holds (the process must still run until then) and
+    return its stderr; the process is killed if anything goes wrong."""
+    import time
+
+    try:
+        deadline = time.monotonic() + timeout
+        while not ready() and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.02)
+        proc.send_signal(sig)
+        return proc.communicate(timeout=30)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 @pytest.mark.slow
 def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, subprocess_env):
     import signal
-    import time
 
     for i in range(6):
         dataset.add_pair(f"p{i}", exts=((".ply", ".pcd"), (".xyz", ".ply"))[i % 2])
@@ -512,20 +529,9 @@ def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, 
     out = tmp_path / "out"
     cmd = [PYTHON, str(driver), "batch", str(manifest), "-o", str(out), "-j", "2"]
     proc = subprocess.Popen(cmd, env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            t = out / "transforms.csv"
-            if t.exists() and t.read_bytes().count(b"\n") >= 2:
-                break
-            assert proc.poll() is None, proc.communicate()
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGTERM)
-        _stdout, stderr = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    transforms = out / "transforms.csv"
+    stderr = _signal_when(proc, lambda: transforms.exists() and transforms.read_bytes().count(b"\n") >= 2,
+                          signal.SIGTERM)
     assert proc.returncode == 128 + signal.SIGTERM, stderr
     assert "interrupted" in stderr and "--resume" in stderr
     assert not (out / batch.LOCK_NAME).exists()  # released on the way out
@@ -672,7 +678,6 @@ REGISTER_DRIVER = textwrap.dedent(
 
 def test_register_stopped_by_sigterm_says_so_and_exits_143(tmp_path, subprocess_env):
     import signal
-    import time
 
     manifest, _ = _real_pairs(tmp_path / "data")
     row = read_csv(manifest)[1][0]
@@ -681,17 +686,7 @@ def test_register_stopped_by_sigterm_says_so_and_exits_143(tmp_path, subprocess_
     proc = subprocess.Popen([PYTHON, str(driver), "register", str(tmp_path / "data" / row["source"]),
                              str(tmp_path / "data" / row["target"]), str(started)],
                             env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 60
-        while not started.exists() and time.monotonic() < deadline:
-            assert proc.poll() is None, proc.communicate()
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGTERM)
-        _stdout, stderr = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    stderr = _signal_when(proc, started.exists, signal.SIGTERM)
     assert proc.returncode == 128 + signal.SIGTERM and stderr.strip().endswith("gctr: terminated"), stderr
 
 
