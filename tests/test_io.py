@@ -528,6 +528,11 @@ def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
     rows = [";".join(f"{v:.3f}".replace(".", ",") for v in p) for p in pts]
     path.write_text("12;-80;41\n" + "\n".join(rows) + "\n")
     np.testing.assert_allclose(load_point_cloud(path), np.vstack([[12, -80, 41], pts]))
+    sections = "".join(f"{len(part)}\n" + "".join(" ".join(f"{v:.3f}" for v in p) + " 17 200 30 40\n" for p in part)
+                       for part in (pts[:12], pts[12:]))  # a two-scan Leica PTS: count line, x y z i r g b
+    path = tmp_path / "two_scans.pts"
+    path.write_text(sections)
+    np.testing.assert_allclose(load_point_cloud(path), pts, atol=5e-4)
     readable = {  # runs of tabs align columns; headers may start with a number; an empty later column
         "tabs.txt": "\n".join("\t\t".join(f"{v:.3f}" for v in p) for p in pts),
         "header.xyz": "20 points\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts),
@@ -550,7 +555,7 @@ def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
         "truncated.pts": (f"{len(pts) + 5}\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts),
                           ["line 1 declares 35 points but the file has 30", "truncated"]),
         "sections.pts": (f"{len(pts)}\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts)
-                         + "\n12\n1 2 3\n", ["line 32 has 1 column(s)", "multi-section PTS"]),
+                         + "\n12\n1 2 3\n", ["its 2 point-count lines declare 42 points but the file has 31"]),
     }
     big = np.round(rng.normal(size=(6000, 3)), 6)  # past the first 64 KiB block: numpy's fast path
     lines = [",".join(f"{v:.6f}" for v in p) + ",,7" for p in big]  # empty later columns are fine

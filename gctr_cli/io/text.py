@@ -8,7 +8,8 @@ z=3); decimal commas separated by blanks (``1,5 2,25 3,0``) are refused with a m
 because they cannot be told apart from comma-separated columns. The dialect is read off the first
 data line and held to: a later line that does not fit it, or has an empty x/y/z cell, is an error
 naming the line, never a silent shift of the columns. A leading point-count line that promises more
-points than follow is an error (a truncated file).
+points than follow is an error (a truncated file); a count line further down starts the next section
+of a multi-section PTS file (one section per scan).
 
 Read in blocks of whole lines (``np.loadtxt`` for plain numeric blocks), so memory follows the number
 of points, not the size of the text: about 180 MB and 7 s for 2 million points. A line longer than
@@ -152,10 +153,9 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     if len(pts) == 0:
         raise PointCloudError(f"{path}: contains no points (no lines with numeric x y z columns)")
     if state.get("count") and state["count"][0] > len(pts):
-        declared, lineno = state["count"]
-        raise PointCloudError(
-            f"{path}: line {lineno} declares {declared} points but the file has {len(pts)} (truncated?)"
-        )
+        declared, lineno, sections = state["count"]
+        what = f"line {lineno} declares" if sections == 1 else f"its {sections} point-count lines declare"
+        raise PointCloudError(f"{path}: {what} {declared} points but the file has {len(pts)} (truncated?)")
     return PointCloud(pts, {}, "xyz")
 
 
@@ -224,7 +224,7 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 state["seen_count_line"] = True
                 value = float(toks[0])
                 if value.is_integer() and value > 0:
-                    state["count"] = (int(value), lines_before + start + 1)
+                    state["count"] = (int(value), lines_before + start + 1, 1)
                 start += 1
                 continue
             state["header"] = False
@@ -263,13 +263,15 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 f"{path}: line {lines_before + i + 1}: empty x, y or z value ({quote(raw_lines[i], 60)})"
             )
         toks = s.split(None, 3)
+        if len(toks) == 1 and state.get("count") and toks[0].isdigit():
+            # the count line of the next section of a multi-section PTS file (one per scan, Leica)
+            declared, lineno, sections = state["count"]
+            state["count"] = (declared + int(toks[0]), lineno, sections + 1)
+            continue
         if len(toks) < 3:
             first_non_numeric(i)  # the first bad line of the file is the one reported
-            hint = ""
-            if len(toks) == 1 and state.get("count") and _is_number(toks[0]):
-                hint = " (a second point-count line? multi-section PTS files are not read: split the sections)"
             raise PointCloudError(
-                f"{path}: line {lines_before + i + 1} has {len(toks)} column(s), expected at least 3 (x y z){hint}"
+                f"{path}: line {lines_before + i + 1} has {len(toks)} column(s), expected at least 3 (x y z)"
             )
         add(toks[:3])
     if any("_" in t for t in flat):  # float() accepts 1_000; no point cloud writer does
