@@ -54,8 +54,7 @@ from gctr_cli.outdir import (
     SNAPSHOTS_DIR,
     TRANSFORMS_FILE,
     Outputs,
-    aligned_path,
-    output_written_at,
+    batch_outputs,
     prepare_outdir,
 )
 from gctr_cli.pair import RegisterFn, derive_seed, run_pair
@@ -108,15 +107,14 @@ def _check_pair_ids(pairs: Sequence[Any]) -> None:
 def check_inputs_not_overwritten(pairs: Sequence[Any], outdir: str | Path, snapshots: bool, write_aligned: bool,
                                  manifest: str | Path | None = None) -> None:
     """Raise :class:`BatchError` (nothing run) when the batch would overwrite one of its own inputs."""
-    ids = {p.pair_id for p in pairs}
-    aligned = {p.pair_id: aligned_path(Path(outdir), p.pair_id, p.source).name for p in pairs}
+    written = batch_outputs(outdir, pairs, snapshots, write_aligned)
     inputs = [(manifest, "it is the manifest")] if manifest is not None else []
     for p in pairs:
         inputs += [(p.source, f"pair {p.pair_id!r} reads it as its source"),
                    (p.target, f"pair {p.pair_id!r} reads it as its target"),
                    (p.gt, f"pair {p.pair_id!r} reads it as its ground truth")]
     for path, role in inputs:
-        if path is not None and (what := output_written_at(path, outdir, ids, snapshots, write_aligned, aligned)):
+        if path is not None and (what := written.get(Path(os.path.realpath(path)))):
             raise BatchError(f"{path}: {role}, but the batch writes {what} there; move the file or choose "
                              "another output folder (nothing was run)")
 
@@ -146,6 +144,7 @@ def run_batch(
     scheduler: str | None = None,
     snapshots: bool = False,
     write_aligned: bool = False,
+    manifest: str | Path | None = None,
 ) -> BatchSummary:
     """Register every pair of ``pairs`` (a manifest) and stream the outputs into ``outdir``.
 
@@ -164,12 +163,13 @@ def run_batch(
     (nothing run) when the output folder is in use or inconsistent, or the executor cannot start; and
     when the batch cannot go on (:class:`ExecutorLost`: the dask scheduler went away; or not even a
     failed row can be appended to ``transforms.csv``): the finished pairs are saved, ``resume`` goes on.
-    Problems of single pairs never raise: they are failed rows.
+    Problems of single pairs never raise: they are failed rows. ``manifest``: the file the pairs came
+    from, which the run must not overwrite either (nor any input of a pair: :class:`BatchError`).
     """
     t0 = time.monotonic()
     outdir = Path(outdir)
     _check_pair_ids(pairs)
-    check_inputs_not_overwritten(pairs, outdir, snapshots, write_aligned)
+    check_inputs_not_overwritten(pairs, outdir, snapshots, write_aligned, manifest)
     check_executor(executor, scheduler)
     ref = register_ref(register_fn)
     n_workers = resolve_workers(workers, config)

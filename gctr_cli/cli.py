@@ -346,18 +346,24 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
 
 
 def _print_report(text: str) -> None:
-    """``text`` on stdout, after the command's files are written. A stdout that is closed, full or
-    read by a reader that stopped early (``gctr register … | head -1``) is not an error of the
-    command: the rest is dropped (with a warning unless the reader just quit) and the exit code
-    stays the command's."""
-    if sys.stdout is None:  # closed (>&-)
-        return
-    try:
+    """``text`` on stdout, after the command's files are written (:func:`_stdout_may_fail`)."""
+    with _stdout_may_fail("the result"):
         click.echo(text, nl=False)
-        sys.stdout.flush()
+
+
+@contextmanager
+def _stdout_may_fail(what: str, results: Path | None = None) -> Iterator[None]:
+    """Printing ``what`` in the block: a stdout that is closed, full or read by a reader that stopped
+    early (``gctr register … | head -1``) is not an error of the command, whose files are written: the
+    rest is dropped (with a warning unless the reader just quit) and the exit code stays the command's."""
+    try:
+        yield
+        if sys.stdout is not None:  # None: closed (>&-); click.echo then prints nothing
+            sys.stdout.flush()
     except OSError as exc:
         if not isinstance(exc, BrokenPipeError):
-            logger.warning("cannot print the result (%s)", exc.strerror or exc)
+            where = f"; the results are in {results}" if results is not None else ""
+            logger.warning("cannot print %s (%s)%s", what, exc.strerror or exc, where)
         _stdout_to_devnull()
 
 
@@ -548,10 +554,6 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         _die(str(exc))
     if min_success is not None and not any(p.gt is not None for p in pairs):
         _die(f"--min-success needs pairs with ground truth, but no pair of {manifest} has a gt file")
-    try:  # its own inputs (the manifest included) are never overwritten by the run
-        batch_mod.check_inputs_not_overwritten(pairs, outdir, snapshots, write_aligned, manifest=manifest)
-    except batch_mod.BatchError as exc:
-        _die(str(exc))
 
     from tqdm import tqdm
 
@@ -584,6 +586,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
             summary = batch_mod.run_batch(
                 pairs, config, outdir, workers=workers, resume=resume, on_start=on_start, on_outcome=on_outcome,
                 executor=executor, scheduler=scheduler, snapshots=snapshots, write_aligned=write_aligned,
+                manifest=manifest,
             )
     except batch_mod.BatchError as exc:
         # one clear line; the cause's traceback (e.g. from distributed) only under -vv
@@ -602,14 +605,8 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         if bar is not None:
             bar.close()
 
-    try:
+    with _stdout_may_fail("the summary", results=outdir):  # cron: > /dev/full, >&-; the results are saved
         _print_summary(summary, config)
-        if sys.stdout is not None:
-            sys.stdout.flush()
-    except OSError as exc:  # stdout full or gone (cron: > /dev/full, a reader that quit): the results are saved
-        if not isinstance(exc, BrokenPipeError):
-            logger.warning("cannot print the summary (%s); the results are in %s", exc.strerror or exc, outdir)
-        _stdout_to_devnull()
     if min_success is not None and summary.success_rate is not None and summary.success_rate < min_success:
         click.echo(
             f"gctr: success rate {100 * summary.success_rate:.1f}% is below --min-success "

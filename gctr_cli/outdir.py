@@ -25,6 +25,7 @@ import logging
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 from gctr_cli.config import Config, ConfigError, flatten_dict, load_config
 from gctr_cli.errors import BatchError
@@ -43,7 +44,7 @@ __all__ = [
     "SNAPSHOTS_DIR",
     "TRANSFORMS_FILE",
     "check_same_config",
-    "output_written_at",
+    "batch_outputs",
     "prepare_outdir",
     "read_rows",
 ]
@@ -60,29 +61,23 @@ OUTPUT_NAMES = frozenset({TRANSFORMS_FILE, ERRORS_FILE, MATRICES_DIR, ALIGNED_DI
                           CONFIG_FILE})
 
 
-def output_written_at(path: str | Path, outdir: str | Path, pair_ids: set[str], snapshots: bool,
-                      write_aligned: bool, aligned_names: dict[str, str] | None = None) -> str | None:
-    """What a batch into ``outdir`` would write at ``path`` (links and ``..`` resolved), or None: an
-    input file there (a manifest named ``tm_errors.csv``, ground truth kept in ``OUTDIR/matrices/``)
-    would be overwritten by the run it feeds. ``aligned_names``: each pair's ``aligned/`` file name
-    (:func:`aligned_path`)."""
-    aligned_names = aligned_names or {}
-    real, out = Path(os.path.realpath(path)), Path(os.path.realpath(outdir))
-    if real.parent == out and real.name in (TRANSFORMS_FILE, ERRORS_FILE, REPORT_FILE, CONFIG_FILE):
-        return real.name
-    if real.parent.parent != out:
-        return None
-    folder, stem = real.parent.name, real.name.rsplit(".", 1)[0]
-    if stem not in pair_ids:
-        return None
-    if folder == MATRICES_DIR and real.suffix == ".txt":
-        return f"{MATRICES_DIR}/{real.name} (the matrix of pair {stem!r})"
-    if folder == SNAPSHOTS_DIR and snapshots and real.suffix == ".png":
-        return f"{SNAPSHOTS_DIR}/{real.name} (the snapshot of pair {stem!r})"
-    if folder == ALIGNED_DIR and write_aligned and real.name in aligned_names.get(stem, ()):
-        return f"{ALIGNED_DIR}/{real.name} (the aligned cloud of pair {stem!r})"
-    return None
 
+def batch_outputs(outdir: str | Path, pairs: Sequence[Any], snapshots: bool, write_aligned: bool) -> dict[Path, str]:
+    """Every file a batch of ``pairs`` into ``outdir`` may write, by its real path (links and ``..``
+    resolved), with words for a message: an input file at one of them (a manifest named
+    ``tm_errors.csv``, ground truth kept in ``OUTDIR/matrices/``) would be overwritten by the run it feeds."""
+    out = Path(os.path.realpath(outdir))
+    written = {out / name: name for name in (TRANSFORMS_FILE, ERRORS_FILE, REPORT_FILE, CONFIG_FILE)}
+    for p in pairs:
+        written[out / MATRICES_DIR / f"{p.pair_id}.txt"] = (f"{MATRICES_DIR}/{p.pair_id}.txt "
+                                                           f"(the matrix of pair {p.pair_id!r})")
+        if snapshots:
+            written[out / SNAPSHOTS_DIR / f"{p.pair_id}.png"] = (f"{SNAPSHOTS_DIR}/{p.pair_id}.png "
+                                                                f"(the snapshot of pair {p.pair_id!r})")
+        if write_aligned:
+            name = aligned_path(out, p.pair_id, p.source).name
+            written[out / ALIGNED_DIR / name] = f"{ALIGNED_DIR}/{name} (the aligned cloud of pair {p.pair_id!r})"
+    return written
 
 #: start of the message of a pair whose outputs could not be written; ``--resume`` runs such pairs again
 OUTPUT_FAILURE = "cannot write its outputs: "

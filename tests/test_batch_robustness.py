@@ -165,6 +165,15 @@ def test_a_batch_never_overwrites_its_own_inputs(four_pairs, fast_config, tmp_pa
         run_batch(specs, fast_config, out, workers=1, register_fn=fake_engine.register)
     assert gt.read_text().startswith("1 0 0 0") and not (out / "transforms.csv").exists()
 
+    # aligned/: only the exact file a pair would write (its source's format), not a name it contains
+    src = specs[2].source
+    aligned = out / "aligned" / f"{specs[2].pair_id}{src.suffix}"
+    near = [PairSpec(specs[2].pair_id, src, specs[2].target, aligned.with_name(aligned.name[:-1]))]
+    batch.check_inputs_not_overwritten(near, out, snapshots=False, write_aligned=True)
+    with pytest.raises(BatchError, match=rf"the batch writes aligned/{aligned.name} \(the aligned cloud"):
+        batch.check_inputs_not_overwritten([PairSpec(specs[2].pair_id, src, specs[2].target, aligned)], out,
+                                           snapshots=False, write_aligned=True)
+
     manifest = out / "tm_errors.csv"
     manifest.write_bytes(four_pairs.manifest().read_bytes())
     result = CliRunner().invoke(cli.main, ["batch", str(manifest), "-o", str(out), "-q"])

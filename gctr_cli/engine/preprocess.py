@@ -69,10 +69,11 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
         raise DegenerateCloudError(f"{name}: {problem}")
     # The shape tests look at the cloud without its far outliers (a stray 0 0 0 beside UTM
     # coordinates would otherwise make any cloud look flat).
-    core = robust_core(pts[:: max(1, len(pts) // 20000)])
+    sample = pts[:: max(1, len(pts) // 20000)]
+    core = robust_core(sample)
     sv = np.linalg.svd(core - core.mean(axis=0), compute_uv=False)
     if sv[0] == 0.0:
-        apart = " (apart from far outliers)" if len(core) < len(pts[:: max(1, len(pts) // 20000)]) else ""
+        apart = " (apart from far outliers)" if len(core) < len(sample) else ""
         raise DegenerateCloudError(f"{name}: all {len(pts)} points are identical{apart}")
     if sv[1] < 1e-9 * sv[0]:
         raise DegenerateCloudError(f"{name}: points are collinear")

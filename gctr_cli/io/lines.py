@@ -26,10 +26,13 @@ BLOCK = 1 << 22
 _NUMERIC_TEXT = frozenset(b"0123456789+-.eE \t\r\n")
 
 
-def numeric_text(data: bytes) -> bool:
-    """Whether ``data`` (the start of a data section) is numbers written as text: the bytes of binary
-    numbers are almost never all digits, signs, points and blanks, so a header that says binary over
-    such data was written for another format."""
+def numeric_text(fh) -> bool:
+    """Whether the data section that starts at ``fh``'s position (left where it was) is numbers written
+    as text: the bytes of binary numbers are almost never all digits, signs, points and blanks, so a
+    header that says binary over such data was written for another format."""
+    start = fh.tell()
+    data = fh.read(256)
+    fh.seek(start)
     return len(data) >= 16 and b"\n" in data and all(b in _NUMERIC_TEXT for b in data)
 
 

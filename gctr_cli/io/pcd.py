@@ -87,11 +87,9 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                  for i in keep}
     elif hdr.data == "binary":
         point_size = hdr.point_size()
-        start = fh.tell()
-        if numeric_text(fh.read(256)):
+        if numeric_text(fh):
             raise PointCloudError(f"{path}: the PCD header says DATA binary but the data is numbers written as text "
                                   "(write 'DATA ascii' in the header)")
-        fh.seek(start)
         if n * point_size > data_bytes:
             raise PointCloudError(
                 f"{path}: truncated: the header declares {n} points of {point_size} bytes but only "

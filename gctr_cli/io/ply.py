@@ -95,12 +95,9 @@ def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         if vertex.props[pnames.index(c)].count_dtype is not None:
             raise PointCloudError(f"{path}: PLY vertex property '{c}' is a list, expected a scalar")
 
-    if fmt != "ascii":
-        start = fh.tell()
-        if numeric_text(fh.read(256)):
-            raise PointCloudError(f"{path}: the PLY header says {fmt} but the data is numbers written as text "
-                                  "(write 'format ascii 1.0' in the header)")
-        fh.seek(start)
+    if fmt != "ascii" and numeric_text(fh):
+        raise PointCloudError(f"{path}: the PLY header says {fmt} but the data is numbers written as text "
+                              "(write 'format ascii 1.0' in the header)")
     # every declared size up to the vertex element must fit in the file before anything is allocated
     need = 0
     for el in elements[: vidx + 1]:
