@@ -317,7 +317,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         from gctr_cli.io import PointCloudError, write_aligned
 
         try:
-            write_aligned(source, transform, aligned)
+            write_aligned(source, transform, aligned, reread=True)
         except (PointCloudError, MatrixError) as exc:
             _die(str(exc))
 

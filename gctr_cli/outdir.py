@@ -361,7 +361,7 @@ class Outputs:
                 if aligned is not None:
                     from gctr_cli.io import write_aligned
 
-                    write_aligned(outcome.source, outcome.transform, aligned)
+                    write_aligned(outcome.source, outcome.transform, aligned, reread=True)
             if outcome.snapshot_png is not None:
                 self._write_snapshot(outcome.pair_id, outcome.snapshot_png)
             if errors_row is not None:

@@ -213,6 +213,28 @@ def test_las_writer_quantises_finely_and_keeps_standard_and_extra_attributes(tmp
     np.testing.assert_array_equal(back.attributes["nx"], rich_cloud.attributes["nx"])  # extra bytes
 
 
+
+def test_las_writer_stretches_unit_float_intensity_and_never_wraps(tmp_path, caplog):
+    """laspy casts without a word: a float intensity in [0, 1] (E57, Open3D) became 0 and 70000
+    became 4464. Now the unit intensity fills 0..65535 and what does not fit is named, not written."""
+    pts = np.random.default_rng(2).normal(size=(10, 3))
+    unit = np.array([0.0, 0.25, 0.5, 0.999, 1.0] * 2)
+    write_point_cloud(tmp_path / "unit.laz", PointCloud(pts, {"intensity": unit}))
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / "unit.laz").attributes["intensity"],
+                                  [0, 16384, 32768, 65469, 65535] * 2)
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    attrs = {"intensity": np.array([1, 2, 3, 4, 70000] * 2), "classification": np.array([0.0, 1.5, 2, 3, 4] * 2),
+             "user_data": np.array([1.0, 2.0, 3.0, 4.0, 5.0] * 2)}
+    write_point_cloud(tmp_path / "bad.las", PointCloud(pts, attrs))
+    back = read_point_cloud(tmp_path / "bad.las").attributes
+    assert not back["intensity"].any() and not back["classification"].any()  # left empty, not wrapped
+    np.testing.assert_array_equal(back["user_data"], [1, 2, 3, 4, 5] * 2)  # whole floats fit
+    notes = [r.getMessage() for r in caplog.records]
+    assert notes == [f"{tmp_path / 'bad.las'}: attribute 'intensity' has values outside 0..65535 (1..70000); "
+                     "LAS dimension 'intensity' not written",
+                     f"{tmp_path / 'bad.las'}: attribute 'classification' has fractional values; LAS dimension "
+                     "'classification' holds whole numbers, not written"]
+
 @pytest.mark.parametrize("ext", [".xyz", ".pts", ".txt"])
 def test_text_writers_round_trip_exactly_with_attribute_columns(tmp_path, rich_cloud, ext):
     write_point_cloud(tmp_path / f"out{ext}", rich_cloud)
@@ -434,3 +456,25 @@ def test_ascii_files_written_in_several_blocks_round_trip_exactly(tmp_path, rich
     write_point_cloud(tmp_path / f"blocks{ext}", rich_cloud, binary=False)
     assert (tmp_path / f"blocks{ext}").read_bytes() == (tmp_path / f"one{ext}").read_bytes()
     np.testing.assert_array_equal(read_point_cloud(tmp_path / f"blocks{ext}").points, rich_cloud.points)
+
+
+def test_aligned_output_does_not_repeat_the_readers_warnings(tmp_path, monkeypatch):
+    """`register --aligned` (and `batch --write-aligned`) read the source a second time to move it:
+    the warning about its non-finite rows was printed twice, the second time without the pair."""
+    import gctr_cli.engine
+    from data_scripts import fake_engine
+
+    monkeypatch.setattr(gctr_cli.engine, "register", fake_engine.register)
+    pts = read_point_cloud(BUNNY).points[:500].copy()
+    pts[:3] = np.nan
+    np.savetxt(tmp_path / "nan.xyz", pts)
+    res = CliRunner().invoke(cli.main, ["register", str(tmp_path / "nan.xyz"), str(BUNNY),
+                                        "--aligned", str(tmp_path / "out.ply")])
+    assert res.exit_code == 0, res.output
+    assert res.output.count("dropped 3 of 500 points with non-finite") == 1, res.output
+    assert len(read_point_cloud(tmp_path / "out.ply")) == 497
+    write_matrix(tmp_path / "identity.txt", np.eye(4))
+    res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "identity.txt"), str(tmp_path / "nan.xyz"),
+                                        "-o", str(tmp_path / "moved.ply")])
+    assert res.exit_code == 0, res.output
+    assert res.output.count("dropped 3 of 500 points with non-finite") == 1, res.output  # apply's only read

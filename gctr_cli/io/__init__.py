@@ -33,8 +33,10 @@ dropped with a warning; too few points, all-identical points and collinear point
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -158,7 +160,11 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
         as_float32 = float32_is_enough(cloud.points)
         data = pcd_bytes(cloud, binary=as_float32, float32=as_float32)
     else:
-        data = fmt.write(cloud, binary)
+        with warnings.catch_warnings(record=True) as caught:  # an attribute the format cannot hold
+            warnings.simplefilter("always")
+            data = fmt.write(cloud, binary)
+        for note in caught:
+            logger.warning("%s: %s", path, note.message)
     try:
         atomic_write(path, data)
     except OSError as exc:
@@ -174,16 +180,34 @@ def save_point_cloud(path: str | Path, points: np.ndarray, *, binary: bool = Tru
     write_point_cloud(path, points, binary=binary)
 
 
-def write_aligned(input_path: str | Path, matrix: np.ndarray, output_path: str | Path) -> PointCloud:
+class _NotesDropped:
+    """Within: the readers' warnings (``dropped 3 of 50000 points with non-finite coordinates`` ...)
+    are not logged; errors are."""
+
+    @staticmethod
+    def filter(record: logging.LogRecord) -> bool:
+        return record.levelno >= logging.ERROR
+
+    def __enter__(self) -> None:
+        logger.addFilter(self)
+
+    def __exit__(self, *exc: object) -> None:
+        logger.removeFilter(self)
+
+
+def write_aligned(input_path: str | Path, matrix: np.ndarray, output_path: str | Path, *,
+                  reread: bool = False) -> PointCloud:
     """Read the cloud ``input_path``, move it by the 4x4 similarity ``matrix`` (``p' = s·R·p + t``,
     the source->target matrix of a registration) and write it to ``output_path``, keeping its
     attributes where the output format allows (normals are rotated). Formats follow the extensions
     (any readable format in; PLY, PCD, LAS/LAZ, XYZ/PTS/TXT out).
 
     This is the one call a caller needs to write an aligned cloud, e.g. the batch runner's
-    ``OUTDIR/aligned/<pair_id>.<ext>``. Returns the moved cloud. Raises :class:`PointCloudError`
-    (unreadable input, unsupported output extension, write failure) or :class:`MatrixError` (a
-    matrix that is not 4x4, not finite, or whose last row is not ``0 0 0 1``).
+    ``OUTDIR/aligned/<pair_id>.<ext>``. With ``reread`` (the caller registered this file, so its
+    reading warnings were shown), the reader's warnings are not repeated. Returns the moved cloud.
+    Raises :class:`PointCloudError` (unreadable input, unsupported output extension, write failure)
+    or :class:`MatrixError` (a matrix that is not 4x4, not finite, or whose last row is not
+    ``0 0 0 1``).
     """
     from gctr_cli.io.matrix import _check_matrix
 
@@ -201,7 +225,10 @@ def write_aligned(input_path: str | Path, matrix: np.ndarray, output_path: str |
             f"{output_path}: unsupported extension '{output_path.suffix}' for writing "
             f"(supported: {', '.join(WRITE_EXTENSIONS)})"
         )
-    cloud = read_point_cloud(input_path, min_points=1, degenerate_ok=True)
+    # The registration that made the matrix read this file and reported its warnings already.
+    read_notes = _NotesDropped() if reread else contextlib.nullcontext()
+    with read_notes:
+        cloud = read_point_cloud(input_path, min_points=1, degenerate_ok=True)
     moved = transform_cloud(cloud, M)
     write_point_cloud(output_path, moved, open3d_pcd=True)
     return moved

@@ -20,7 +20,9 @@ import signal
 import struct
 import tempfile
 import time
+import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -232,6 +234,39 @@ def _scale_offset(values: np.ndarray) -> tuple[float, float]:
     return scale, offset
 
 
+class AttributeNotWritten(UserWarning):
+    """An attribute the output format cannot hold as it is; the rest of the file is written."""
+
+
+def _fit_dimension(name: str, values: np.ndarray, dim: Any) -> np.ndarray | None:
+    """``values`` as LAS dimension ``dim`` holds them, or None (with a warning naming the attribute)
+    when they do not fit: laspy would wrap 70000 to 4464 and truncate 0.37 to 0 without a word.
+    A float intensity in [0, 1] (E57's and Open3D's convention) is stretched to LAS's 0..65535.
+    The warnings are :class:`AttributeNotWritten`; the writer names the file they concern."""
+    if values.dtype.kind not in "fiub":
+        warnings.warn(f"attribute {name!r} is not numeric; LAS dimension {name!r} not written",
+                      AttributeNotWritten, stacklevel=2)
+        return None
+    if dim.kind.name == "FloatingPoint":
+        return values
+    v = values.astype(np.float64)
+    if not np.isfinite(v).all():
+        warnings.warn(f"attribute {name!r} has NaN or infinite values; LAS dimension {name!r} not written",
+                      AttributeNotWritten, stacklevel=2)
+        return None
+    if values.dtype.kind == "f" and (v != np.round(v)).any():
+        if name == "intensity" and len(v) and v.min() >= 0.0 and v.max() <= 1.0:
+            return np.round(v * dim.max).astype(np.int64)
+        warnings.warn(f"attribute {name!r} has fractional values; LAS dimension {name!r} holds whole numbers, "
+                      "not written", AttributeNotWritten, stacklevel=2)
+        return None
+    if len(v) and (v.min() < dim.min or v.max() > dim.max):
+        warnings.warn(f"attribute {name!r} has values outside {dim.min}..{dim.max} ({v.min():g}..{v.max():g}); "
+                      f"LAS dimension {name!r} not written", AttributeNotWritten, stacklevel=2)
+        return None
+    return v.astype(np.int64)
+
+
 def las_bytes(cloud: PointCloud, compress: bool) -> bytes:
     """The bytes of a LAS 1.4 file (LAZ when ``compress``): point format 6, or 7 with colours, or the
     source's format when the cloud came from LAS; attributes matching a standard dimension fill it
@@ -263,10 +298,9 @@ def las_bytes(cloud: PointCloud, compress: bool) -> bytes:
         if k in standard:
             if k in _RGB and v.dtype == np.uint8:
                 v = v.astype(np.uint16) * 257
-            try:
-                las[k] = v
-            except Exception:  # noqa: BLE001 - a value the dimension cannot hold: leave it at 0
-                logger.warning("attribute %r does not fit LAS dimension %r; not written", k, k)
+            fitted = _fit_dimension(k, v, header.point_format.dimension_by_name(k))
+            if fitted is not None:
+                las[k] = fitted
         elif k in extra:
             las[k] = v
     buf = _stdio.BytesIO()
