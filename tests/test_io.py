@@ -19,6 +19,7 @@ from gctr_cli.io import (
     format_matrix,
     load_point_cloud,
     read_matrix,
+    read_point_cloud,
     save_point_cloud,
     write_matrix,
 )
@@ -225,6 +226,33 @@ def test_ply_ascii_element_before_vertex_and_list_in_vertex(tmp_path, rng):
     path = tmp_path / "al.ply"
     path.write_bytes(hdr + ("\n".join(lines) + "\n").encode())
     np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def test_ascii_ply_pcd_attribute_its_type_cannot_hold_is_kept_not_wrapped(tmp_path, rng, caplog):
+    """`300` under `property uchar red` became 44 (numpy's cast wraps); `0.5` under `int` became 0."""
+    pts = np.round(rng.normal(size=(12, 3)), 6)
+    rows = [f"{x!r} {y!r} {z!r} {250 + i} {i / 2} {i}" for i, (x, y, z) in enumerate(pts.tolist())]
+    path = tmp_path / "wide.ply"
+    path.write_bytes(ply_header("ascii", [("vertex", 12, ["float x", "float y", "float z", "uchar red", "int q",
+                                                          "ushort ok"])]) + ("\n".join(rows) + "\n").encode())
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    cloud = read_point_cloud(path)
+    np.testing.assert_array_equal(cloud.attributes["red"], 250 + np.arange(12))
+    np.testing.assert_array_equal(cloud.attributes["q"], np.arange(12) / 2)
+    assert cloud.attributes["ok"].dtype == np.uint16  # a column that fits keeps its type
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: 'red' is declared uchar but holds values it cannot (e.g. 256; range 0..255, whole "
+        "numbers); kept as float64",
+        f"{path}: 'q' is declared int but holds values it cannot (e.g. 0.5; range -2147483648..2147483647, "
+        "whole numbers); kept as float64"]
+    caplog.clear()
+    pcd = tmp_path / "wide.pcd"  # the same in an ASCII PCD
+    pcd.write_text("VERSION .7\nFIELDS x y z red\nSIZE 4 4 4 1\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 12\nHEIGHT 1\n"
+                   "POINTS 12\nDATA ascii\n" + "".join(f"{x} {y} {z} {250 + i}\n" for i, (x, y, z) in enumerate(pts)))
+    np.testing.assert_array_equal(read_point_cloud(pcd).attributes["red"], 250 + np.arange(12))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{pcd}: 'red' is declared U 1 but holds values it cannot (e.g. 256; range 0..255, whole numbers); "
+        "kept as float64"]
 
 
 def test_ply_crlf_header(tmp_path, cloud):

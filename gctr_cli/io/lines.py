@@ -8,6 +8,7 @@ later value by one.
 from __future__ import annotations
 
 import io as _stdio
+import logging
 import warnings
 from pathlib import Path
 
@@ -15,7 +16,9 @@ import numpy as np
 
 from gctr_cli.io.errors import PointCloudError, quote
 
-__all__ = ["MAX_LINE", "LineReader", "numeric_text", "parse_float", "read_rows"]
+__all__ = ["MAX_LINE", "LineReader", "as_declared", "numeric_text", "parse_float", "read_rows"]
+
+logger = logging.getLogger("gctr_cli.io")
 
 #: longest line accepted in a text body (bytes); a longer one means the file is not text we can read
 MAX_LINE = 1 << 20
@@ -172,3 +175,19 @@ def read_rows(reader: LineReader, n_rows: int, n_values: int, what: str, plural:
                 out[got, j] = v
             got += 1  # never more than n_rows: the block holds at most n_rows - got lines
     return out
+
+
+def as_declared(path: Path, name: str, declared: str, values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """An attribute read as float64 text in its declared type ``dtype`` (``declared`` names it as the
+    header does). Text can hold what an integer type cannot (``300`` in a ``uchar``, ``0.5`` in an
+    ``int``), which a cast would wrap or truncate without a word: such a column stays float64, with a
+    warning."""
+    if dtype.kind not in "iu":
+        return values.astype(dtype)
+    info = np.iinfo(dtype)
+    misfit = ~np.isfinite(values) | (values != np.round(values)) | (values < info.min) | (values > info.max)
+    if not misfit.any():
+        return values.astype(dtype)
+    logger.warning("%s: %r is declared %s but holds values it cannot (e.g. %g; range %d..%d, whole numbers); "
+                   "kept as float64", path, name, declared, values[misfit][0], info.min, info.max)
+    return values.astype(np.float64)

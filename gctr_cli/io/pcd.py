@@ -18,7 +18,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.lines import LineReader, numeric_text, parse_float, read_rows
+from gctr_cli.io.lines import LineReader, as_declared, numeric_text, parse_float, read_rows
 from gctr_cli.io.ply import format_columns, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]
@@ -83,7 +83,8 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                            extra, n)
         starts = np.cumsum([0] + hdr.counts[:-1])
         # x y z keep the text's value (float64); attributes get their declared type
-        table = {hdr.fields[i]: rows[:, starts[i]] if hdr.fields[i] in "xyz" else rows[:, starts[i]].astype(dtypes[i])
+        table = {hdr.fields[i]: rows[:, starts[i]] if hdr.fields[i] in "xyz" else
+                 as_declared(path, hdr.fields[i], f"{hdr.types[i]} {hdr.sizes[i]}", rows[:, starts[i]], dtypes[i])
                  for i in keep}
     elif hdr.data == "binary":
         point_size = hdr.point_size()

@@ -20,7 +20,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, quote
-from gctr_cli.io.lines import LineReader, numeric_text, parse_float, read_rows
+from gctr_cli.io.lines import LineReader, as_declared, numeric_text, parse_float, read_rows
 
 __all__ = ["ply_bytes", "read_ply"]
 
@@ -121,7 +121,8 @@ def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     if attributes:
         for p in vertex.props:
             if p.count_dtype is None and p.name not in ("x", "y", "z") and p.name in table:
-                attrs[p.name] = np.ascontiguousarray(table[p.name]).astype(p.dtype)
+                attrs[p.name] = as_declared(path, p.name, _TYPE_NAMES[p.dtype], np.ascontiguousarray(table[p.name]),
+                                            np.dtype(p.dtype))
     return PointCloud(pts, attrs, "ply")
 
 
