@@ -588,6 +588,12 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
                 executor=executor, scheduler=scheduler, snapshots=snapshots, write_aligned=write_aligned,
                 manifest=manifest,
             )
+    except batch_mod.ExecutorLost as exc:  # the cause's traceback (from distributed) only under -vv
+        logger.debug("the batch stopped", exc_info=True)
+        if _has_rows(outdir / batch_mod.TRANSFORMS_FILE):
+            _die(f"{exc}; the finished pairs are saved in {outdir}: rerun with --resume against a running "
+                 "scheduler to finish")
+        _die(f"{exc}; no pair had finished, nothing was written")  # the run removed what it had created
     except batch_mod.BatchError as exc:
         # one clear line; the cause's traceback (e.g. from distributed) only under -vv
         logger.debug("the batch stopped", exc_info=True)

@@ -365,8 +365,7 @@ def _lost(scheduler: str | None, n_running: int) -> ExecutorLost:
     """The one-line error of a batch whose scheduler went away (the cause is chained for ``-vv``)."""
     where = f"at {scheduler}" if scheduler else "of the LocalCluster"
     return ExecutorLost(
-        f"lost the connection to the dask scheduler {where} ({n_running} pairs were running); the finished "
-        "pairs are saved: rerun with --resume against a running scheduler to finish"
+        f"lost the connection to the dask scheduler {where} ({n_running} pairs sent to it unfinished)"
     )
 
 

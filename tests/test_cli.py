@@ -761,3 +761,26 @@ def test_register_writes_its_files_even_when_the_reader_of_its_output_stops_earl
     M = read_matrix(tmp_path / "m.txt")
     assert transform_errors(M, T, 1.0).rot_err_deg < 1.0
     np.testing.assert_allclose(load_point_cloud(tmp_path / "al.ply"), apply(M, src), atol=1e-9)
+
+
+def test_batch_lost_scheduler_says_whether_anything_was_saved(runner, monkeypatch, four_pairs, tmp_path):
+    """The dask executor cannot know what the batch recorded; the message said "the finished pairs
+    are saved" even when none had finished and the run had removed its output folder."""
+    out = tmp_path / "out"
+
+    def lost(pairs, config, outdir, **kwargs):
+        if kwargs.get("resume"):  # a run that had recorded one pair before the scheduler went away
+            (Path(outdir) / batch.TRANSFORMS_FILE).write_text("pair_id\nply_ply\n")
+        raise batch.ExecutorLost("lost the connection to the dask scheduler at tcp://h:8786 (2 pairs sent to it "
+                                 "unfinished)")
+
+    monkeypatch.setattr(batch, "run_batch", lost)
+    res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "--executor", "dask", "-q")
+    assert res.exit_code == 2
+    assert res.stderr == ("gctr: error: lost the connection to the dask scheduler at tcp://h:8786 (2 pairs sent to "
+                          "it unfinished); no pair had finished, nothing was written\n")
+    out.mkdir()
+    res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "--executor", "dask", "-q", "--resume")
+    assert res.exit_code == 2
+    assert res.stderr.endswith(f"(2 pairs sent to it unfinished); the finished pairs are saved in {out}: rerun "
+                               "with --resume against a running scheduler to finish\n")
