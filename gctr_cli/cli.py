@@ -773,7 +773,13 @@ def commented_yaml(config: Any) -> str:
 @main.group("config")
 @verbose_option
 def config_group() -> None:
-    """Show the default configuration or validate a config file."""
+    """Show the default configuration or validate a config file.
+
+    \b
+    Examples:
+      gctr config show > my.yaml
+      gctr config check my.yaml
+    """
 
 
 @config_group.command("show")
@@ -797,7 +803,7 @@ def config_show(file: str | None) -> None:
 @click.argument("file", type=click.Path(dir_okay=False))
 @verbose_option
 def config_check(file: str) -> None:
-    """Validate FILE: exit 0 and print "ok", or exit 2 naming each bad key and the expected type.
+    """Validate FILE: exit 0 and print "ok: FILE", or exit 2 naming each bad key and the expected type.
 
     Also checks that the method FILE selects is installed here.
 
