@@ -229,7 +229,8 @@ class EngineConfig(_Strict):
         "default threshold counts on this search)")
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, Annotated[float, Field(allow_inf_nan=True)]] = Field(
-        (0.1, 10.0), description="accepted range of the source->target scale (high may be .inf: no upper bound)")
+        (0.1, 10.0), description="accepted range of the source->target scale (high may be .inf: no upper bound); "
+        "an answer within 2% of a bound is refused: the true scale may lie beyond it")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(

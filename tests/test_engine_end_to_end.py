@@ -398,3 +398,23 @@ def test_run_search_is_registers_search(monkeypatch):
     assert result.ok and len(run.candidates) == len(decided) > 0
     for ours, theirs in zip(run.candidates, decided):
         assert ours.overlap == theirs.overlap and np.array_equal(ours.transform, theirs.transform)
+
+
+@pytest.mark.parametrize("true_scale", [0.095, 10.5])
+def test_true_scale_just_beyond_scale_bounds_is_refused_not_pinned(true_scale):
+    """Every hypothesis and the refinement stop at a scale bound, so a pair whose true scale lies just
+    beyond it came back `ok` at confidence 1, pinned at the bound and turned 4-6° to make up for it."""
+    rng = np.random.default_rng(3)
+    src = _model("bunny")
+    tgt = src[np.sort(rng.choice(len(src), len(src) // 2, replace=False))]
+    T = to_matrix(true_scale, random_rotation(rng), np.array([1.0, -2.0, 0.5]))
+    res = register(src, apply(T, tgt + rng.normal(scale=0.0005, size=tgt.shape)), EngineConfig(), seed=0)
+    end = "lower" if true_scale < 1 else "upper"
+    assert res.status == "failed"
+    assert res.message.startswith(f"scale {res.scale:.4g} is at the {end} end of engine.scale_bounds [0.1, 10.0]")
+    assert "widen scale_bounds" in res.message
+    wide = register(src, apply(T, tgt + rng.normal(scale=0.0005, size=tgt.shape)),
+                    EngineConfig(scale_bounds=(0.01, 100.0)), seed=0)
+    assert wide.status == "ok", wide.message  # the same pair within wider bounds
+    e = transform_errors(wide.transform, T, bbox_diagonal(apply(T, tgt)))
+    assert e.rot_err_deg < 1.0 and e.scale_err < 0.01, e

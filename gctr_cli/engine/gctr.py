@@ -105,6 +105,10 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine)
 
 
+#: an answer within this share (in log scale) of a finite ``scale_bounds`` end is refused (see scale_bound_reached)
+BOUND_MARGIN = 0.02
+
+
 def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Config | None = None, seed: int = 0, *,
              source_normals: np.ndarray | None = None,
              target_normals: np.ndarray | None = None) -> RegistrationResult:
@@ -162,8 +166,9 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
             candidates = candidates + extra
             T_n, verdict = judge(candidates)
     if verdict is None:
-        return _failed("no consistent correspondences found (RANSAC found no valid similarity)", seed, start,
-                       timer.timings)
+        return _failed("no consistent correspondences found (RANSAC found no valid similarity; if the clouds' "
+                       f"units may differ by more than engine.scale_bounds {list(cfg.scale_bounds)} allows, "
+                       "widen it)", seed, start, timer.timings)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.
     best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
@@ -178,6 +183,10 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
         status, message = "failed", f"too weak evidence: fitness {fit.fitness:.3f} below {cfg.min_fitness}"
     elif not lo <= scale <= hi:
         status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
+    elif end := scale_bound_reached(scale, lo, hi):
+        status, message = "failed", (f"scale {scale:.4g} is at the {end} end of engine.scale_bounds [{lo}, {hi}]: "
+                                     "the true scale may lie beyond it, and the search cannot reach it "
+                                     "(widen scale_bounds)")
     elif verdict.confidence < cfg.min_confidence:
         status, message = "failed", refusal_message(verdict, cfg)
     return RegistrationResult(
@@ -191,6 +200,22 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
                   "target_conflict": verdict.agreement.conflict_target, "support": verdict.support,
                   "relief_confidence": verdict.relief_confidence},
     )
+
+
+def scale_bound_reached(scale: float, lo: float, hi: float) -> str:
+    """``"lower"`` or ``"upper"`` when ``scale`` sits within :data:`BOUND_MARGIN` of that bound, else ``""``.
+
+    A pair whose true scale lies just beyond a bound does not fail by itself: every hypothesis and the
+    refinement stop at the bound, and the answer pinned there (1% off in scale, turned 4-6° to make up
+    for it) was accepted at confidence 1. The margin is 2%, or a tenth of the bounds' log-width when they
+    are narrow ([0.95, 1.05]: 1%), so a range chosen tight around a known scale keeps most of itself.
+    """
+    margin = np.exp(min(BOUND_MARGIN, 0.1 * np.log(hi / lo)))
+    if scale <= lo * margin:
+        return "lower"
+    if np.isfinite(hi) and scale >= hi / margin:
+        return "upper"
+    return ""
 
 
 def _prepared_pair(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, timer: StageTimer,
