@@ -312,7 +312,12 @@ def _collinear() -> np.ndarray:
     (lambda: np.full((50, 3), np.nan), "only 0 finite points"),
     (lambda: np.zeros((0, 3)), "only 0 finite points"),
     (lambda: np.zeros((40, 2)), "expected an (N, 3) array"),
-], ids=["planar", "five_points", "collinear", "identical", "all_nan", "empty", "wrong_shape"])
+    (lambda: "scans/a.ply", "expected an (N, 3) array of point coordinates, got the path 'scans/a.ply': read it "
+                            "with gctr_cli.io.load_point_cloud"),
+    (lambda: [[1.0, 2.0, 3.0], [1.0, 2.0]], "expected an (N, 3) array of point coordinates, got list ("),
+    (lambda: np.ones((40, 3), dtype=bool), "got booleans"),
+], ids=["planar", "five_points", "collinear", "identical", "all_nan", "empty", "wrong_shape", "path", "ragged",
+        "booleans"])
 def test_degenerate_inputs_fail_gracefully(bad, expected, which):
     good = _good_cloud()
     src, tgt = (bad(), good) if which == "source" else (good, bad())
@@ -321,6 +326,13 @@ def test_degenerate_inputs_fail_gracefully(bad, expected, which):
     assert expected in res.message and res.message.startswith(which), res.message
     np.testing.assert_array_equal(res.transform, np.eye(4))
     assert res.scale == 1.0 and res.fitness == 0.0 and res.n_inliers == 0
+
+
+@pytest.mark.parametrize("seed", [None, -1, True, 1.5])
+def test_a_seed_that_is_not_a_non_negative_integer_is_an_error(seed):
+    """``seed=None`` drew fresh entropy: two calls gave different transforms and the seed was lost."""
+    with pytest.raises(ValueError, match="seed must be a non-negative integer"):
+        register(_good_cloud(), _good_cloud(), EngineConfig(), seed=seed)
 
 
 def test_stray_far_point_beside_utm_coordinates_registers():

@@ -117,10 +117,15 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
     ``config`` is the engine section (``load_config(...).engine``) or the whole loaded config (its
     engine section is used); None for the defaults. Normals are re-estimated on the working
     (downsampled) clouds, so the optional normal arguments are accepted for API symmetry but not
-    required. Returns a result with ``status='failed'`` and a message (never raises on data) when the
-    inputs are degenerate or the evidence is too weak; a config of another type is a TypeError.
+    required. ``seed`` (a non-negative integer, else a ValueError) seeds every random draw: the same
+    inputs, config and seed give the same transform. Returns a result with ``status='failed'`` and a
+    message (never raises on data: arrays of another shape, a path or a ragged list are such results
+    too) when the inputs are degenerate or the evidence is too weak; a config of another type is a
+    TypeError.
     """
     del source_normals, target_normals  # normals are recomputed on the downsampled clouds
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer (every random draw comes from it), got {seed!r}")
     if isinstance(config, Config):
         config = config.engine
     if config is not None and not isinstance(config, EngineConfig):

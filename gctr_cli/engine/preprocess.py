@@ -8,6 +8,7 @@ normalisations back into the reported transform.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,7 +57,19 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
     Planar clouds are rejected too: a plane leaves the rotation about its normal (and, with a
     similarity, the scale/translation along it) undetermined.
     """
-    pts = np.asarray(points, dtype=np.float64)
+    if isinstance(points, (str, bytes, os.PathLike)):
+        raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got the path "
+                                   f"{os.fsdecode(points)!r}: read it with gctr_cli.io.load_point_cloud")
+    try:  # a ragged list ... is an answer naming the problem, not numpy's exception
+        pts = np.asarray(points)
+        is_bool = pts.dtype.kind == "b"
+        pts = np.asarray(pts, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got "
+                                   f"{type(points).__name__} ({str(exc).split(chr(10))[0][:200]}); read a file "
+                                   "with gctr_cli.io.load_point_cloud") from None
+    if is_bool:
+        raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got booleans")
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise DegenerateCloudError(f"{name}: expected an (N, 3) array of points, got shape {pts.shape}")
     finite = np.all(np.isfinite(pts), axis=1)

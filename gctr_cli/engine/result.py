@@ -22,7 +22,16 @@ class RegistrationResult:
     identity) and a ``message`` saying why.
 
     ``confidence`` in [0, 1] says how strongly the data single out this transform (see the
-    engine's verdict stage); NaN where a method does not compute one.
+    engine's verdict stage): it measures how distinct the answer is from every other alignment, not
+    how precise it is. 0 when the engine failed before its verdict (degenerate input, no RANSAC
+    hypothesis); NaN where a comparison method does not compute one.
+
+    The rest describe the search run that found the answer: ``n_inliers`` its RANSAC inliers among the
+    salient points (supervoxel centroids, not input points), ``iterations`` its outer rounds,
+    ``overlap`` the overlap hypothesis it ran with (0.25 ... 1.0, or a part-region share). ``runtime_s``
+    is the engine's wall time and ``timings`` its seconds per stage; ``evidence`` holds the verdict's
+    inputs (its score, the best rival's score, agreement and conflict shares, support, relief
+    confidence); ``seed`` is the seed the draws came from; ``ok`` is ``status == "ok"``.
     """
 
     transform: np.ndarray
