@@ -188,12 +188,14 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
         status, message = "failed", f"too weak evidence: fitness {fit.fitness:.3f} below {cfg.min_fitness}"
     elif not lo <= scale <= hi:
         status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
+    elif verdict.confidence < cfg.min_confidence:
+        status, message = "failed", refusal_message(verdict, cfg)
+        if end := scale_bound_reached(scale, lo, hi):
+            message += f"; its scale {scale:.4g} is at the {end} end of engine.scale_bounds [{lo}, {hi}]"
     elif end := scale_bound_reached(scale, lo, hi):
         status, message = "failed", (f"scale {scale:.4g} is at the {end} end of engine.scale_bounds [{lo}, {hi}]: "
                                      "the true scale may lie beyond it, and the search cannot reach it "
                                      "(widen scale_bounds)")
-    elif verdict.confidence < cfg.min_confidence:
-        status, message = "failed", refusal_message(verdict, cfg)
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
