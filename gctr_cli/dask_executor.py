@@ -365,7 +365,8 @@ def _lost(scheduler: str | None, n_running: int) -> ExecutorLost:
     """The one-line error of a batch whose scheduler went away (the cause is chained for ``-vv``)."""
     where = f"at {scheduler}" if scheduler else "of the LocalCluster"
     return ExecutorLost(
-        f"lost the connection to the dask scheduler {where} ({n_running} pairs sent to it unfinished)"
+        f"lost the connection to the dask scheduler {where} ({n_running} pair{'' if n_running == 1 else 's'} "
+        "sent to it unfinished)"
     )
 
 

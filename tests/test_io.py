@@ -253,6 +253,15 @@ def test_ascii_ply_pcd_attribute_its_type_cannot_hold_is_kept_not_wrapped(tmp_pa
     assert [r.getMessage() for r in caplog.records] == [
         f"{pcd}: 'red' is declared U 1 but holds values it cannot (e.g. 256; range 0..255, whole numbers); "
         "kept as float64"]
+    # 64-bit fields: float64 rounds 2**64 - 1 up to 2**64, which is beyond, not at, the limit
+    caplog.clear()
+    pcd.write_text("VERSION .7\nFIELDS x y z t s\nSIZE 4 4 4 8 8\nTYPE F F F U I\nCOUNT 1 1 1 1 1\nWIDTH 12\nHEIGHT 1\n"
+                   "POINTS 12\nDATA ascii\n" + "".join(f"{x} {y} {z} 18446744073709551615 9223372036854775807\n"
+                                                      for x, y, z in pts))
+    wide = read_point_cloud(pcd).attributes
+    assert wide["t"].dtype == wide["s"].dtype == np.float64  # not wrapped to 0 and to -2**63
+    assert [r.getMessage().split(" but ")[0] for r in caplog.records] == [f"{pcd}: 't' is declared U 8",
+                                                                          f"{pcd}: 's' is declared I 8"]
 
 
 def test_ply_crlf_header(tmp_path, cloud):

@@ -218,22 +218,30 @@ def test_las_writer_stretches_unit_float_intensity_and_never_wraps(tmp_path, cap
     """laspy casts without a word: a float intensity in [0, 1] (E57, Open3D) became 0 and 70000
     became 4464. Now the unit intensity fills 0..65535 and what does not fit is named, not written."""
     pts = np.random.default_rng(2).normal(size=(10, 3))
-    unit = np.array([0.0, 0.25, 0.5, 0.999, 1.0] * 2)
-    write_point_cloud(tmp_path / "unit.laz", PointCloud(pts, {"intensity": unit}))
-    np.testing.assert_array_equal(read_point_cloud(tmp_path / "unit.laz").attributes["intensity"],
-                                  [0, 16384, 32768, 65469, 65535] * 2)
+    for unit in ([0.0, 0.25, 0.5, 0.999, 1.0] * 2, [0.0, 1.0] * 5):  # whole-valued floats in [0, 1] too
+        write_point_cloud(tmp_path / "unit.laz", PointCloud(pts, {"intensity": np.array(unit)}))
+        np.testing.assert_array_equal(read_point_cloud(tmp_path / "unit.laz").attributes["intensity"],
+                                      np.round(np.array(unit) * 65535))
     caplog.set_level("WARNING", logger="gctr_cli.io")
     attrs = {"intensity": np.array([1, 2, 3, 4, 70000] * 2), "classification": np.array([0.0, 1.5, 2, 3, 4] * 2),
-             "user_data": np.array([1.0, 2.0, 3.0, 4.0, 5.0] * 2)}
+             "user_data": np.array([1.0, 2.0, 3.0, 4.0, 5.0] * 2), "point_source_id": np.full(10, 2**64 - 1, np.uint64),
+             "flag": np.array([True, False] * 5), "label": np.array(["a"] * 10)}
     write_point_cloud(tmp_path / "bad.las", PointCloud(pts, attrs))
     back = read_point_cloud(tmp_path / "bad.las").attributes
-    assert not back["intensity"].any() and not back["classification"].any()  # left empty, not wrapped
+    for k in ("intensity", "classification", "point_source_id"):
+        assert not back[k].any(), k  # left empty, not wrapped
     np.testing.assert_array_equal(back["user_data"], [1, 2, 3, 4, 5] * 2)  # whole floats fit
-    notes = [r.getMessage() for r in caplog.records]
-    assert notes == [f"{tmp_path / 'bad.las'}: attribute 'intensity' has values outside 0..65535 (1..70000); "
-                     "LAS dimension 'intensity' not written",
-                     f"{tmp_path / 'bad.las'}: attribute 'classification' has fractional values; LAS dimension "
-                     "'classification' holds whole numbers, not written"]
+    np.testing.assert_array_equal(back["flag"], [1, 0] * 5)  # flags as 0/1 extra bytes
+    out = tmp_path / "bad.las"
+    assert sorted(r.getMessage() for r in caplog.records) == sorted([
+        f"{out}: attribute 'intensity' holds a value LAS dimension 'intensity' cannot (70000; it holds whole "
+        "numbers 0..65535); not written",
+        f"{out}: attribute 'classification' holds a value LAS dimension 'classification' cannot (1.5; it holds "
+        "whole numbers 0..255); not written",
+        f"{out}: attribute 'point_source_id' holds a value LAS dimension 'point_source_id' cannot "
+        "(18446744073709551615; it holds whole numbers 0..65535); not written",
+        f"{out}: attribute 'label' not written (LAS extra bytes hold numbers under a name like an identifier)"])
+
 
 @pytest.mark.parametrize("ext", [".xyz", ".pts", ".txt"])
 def test_text_writers_round_trip_exactly_with_attribute_columns(tmp_path, rich_cloud, ext):
@@ -478,3 +486,32 @@ def test_aligned_output_does_not_repeat_the_readers_warnings(tmp_path, monkeypat
                                         "-o", str(tmp_path / "moved.ply")])
     assert res.exit_code == 0, res.output
     assert res.output.count("dropped 3 of 500 points with non-finite") == 1, res.output  # apply's only read
+    # ... but a note about an attribute, which the registration's read (coordinates only) never gave, is shown
+    rows = "".join(f"{x!r} {y!r} {z!r} {250 + i % 10}\n" for i, (x, y, z) in enumerate(pts[3:].tolist()))
+    header = ("ply\nformat ascii 1.0\nelement vertex 497\nproperty float64 x\nproperty float64 y\n"
+              "property float64 z\nproperty uint8 red\nend_header\n")
+    (tmp_path / "wide.ply").write_text(header + rows)
+    res = CliRunner().invoke(cli.main, ["register", str(tmp_path / "wide.ply"), str(BUNNY),
+                                        "--aligned", str(tmp_path / "wide_out.ply")])
+    assert res.exit_code == 0, res.output
+    assert res.output.count("'red' is declared uint8 but holds values it cannot (e.g. 256; range 0..255") == 1
+
+
+def test_the_reread_filter_keeps_other_threads_warnings(caplog):
+    """`write_aligned(..., reread=True)` silences its own read's warnings, not another thread's."""
+    import logging
+    import threading
+
+    from gctr_cli.io import _NotesDropped
+
+    log = logging.getLogger("gctr_cli.io")
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    with _NotesDropped():
+        log.warning("this thread: dropped")
+        worker = threading.Thread(target=log.warning, args=("another thread: kept",))
+        worker.start()
+        worker.join()
+        log.error("this thread: an error is kept")
+    log.warning("after: kept")
+    assert [r.getMessage() for r in caplog.records] == ["another thread: kept", "this thread: an error is kept",
+                                                        "after: kept"]

@@ -36,7 +36,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import warnings
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -160,11 +160,7 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
         as_float32 = float32_is_enough(cloud.points)
         data = pcd_bytes(cloud, binary=as_float32, float32=as_float32)
     else:
-        with warnings.catch_warnings(record=True) as caught:  # an attribute the format cannot hold
-            warnings.simplefilter("always")
-            data = fmt.write(cloud, binary)
-        for note in caught:
-            logger.warning("%s: %s", path, note.message)
+        data = fmt.write(cloud, binary, path)
     try:
         atomic_write(path, data)
     except OSError as exc:
@@ -181,12 +177,16 @@ def save_point_cloud(path: str | Path, points: np.ndarray, *, binary: bool = Tru
 
 
 class _NotesDropped:
-    """Within: the readers' warnings (``dropped 3 of 50000 points with non-finite coordinates`` ...)
-    are not logged; errors are."""
+    """Within (in this thread): the readers' warnings about the file as a whole (``dropped 3 of 50000
+    points with non-finite coordinates`` ...) are not logged. Errors are, and so are the notes about
+    attributes, which a registration's read (coordinates only) never gave."""
 
-    @staticmethod
-    def filter(record: logging.LogRecord) -> bool:
-        return record.levelno >= logging.ERROR
+    def __init__(self) -> None:
+        self.thread = threading.get_ident()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return (record.thread != self.thread or record.levelno >= logging.ERROR
+                or getattr(record, "gctr_attribute_note", False))
 
     def __enter__(self) -> None:
         logger.addFilter(self)

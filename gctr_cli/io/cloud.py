@@ -22,6 +22,29 @@ COLLINEAR_RTOL = 1e-9
 NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
 
 
+#: ``extra`` of a reader's warning that concerns an attribute (read only with ``attributes=True``)
+ATTRIBUTE_NOTE = {"gctr_attribute_note": True}
+
+
+def integer_misfit(values: np.ndarray, lo: int, hi: int) -> str | None:
+    """The first value an integer type holding ``lo..hi`` cannot store exactly (NaN, a fraction, a
+    value beyond the range), formatted for a message; None when every value fits. Integer arrays are
+    compared as integers (exact for 64-bit values); floats against ``hi + 1``, which float64 rounds
+    up, not down, at 64 bits."""
+    v = np.asarray(values)
+    if not len(v):
+        return None
+    if v.dtype.kind in "iub":
+        low, high = int(v.min()), int(v.max())
+        return str(low) if low < lo else str(high) if high > hi else None
+    f = v.astype(np.float64)
+    bad = ~np.isfinite(f) | (f != np.round(f)) | (f < lo) | (f >= float(hi) + 1.0)
+    if not bad.any():
+        return None
+    x = float(f[np.argmax(bad)])
+    return str(int(x)) if np.isfinite(x) and x.is_integer() else f"{x:.10g}"
+
+
 @dataclass(frozen=True)
 class PointCloud:
     """Points and their per-point attributes.

@@ -20,14 +20,13 @@ import signal
 import struct
 import tempfile
 import time
-import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud
-from gctr_cli.io.errors import PointCloudError
+from gctr_cli.io.cloud import PointCloud, integer_misfit
+from gctr_cli.io.errors import PointCloudError, clean
 
 __all__ = ["read_las", "las_bytes"]
 
@@ -234,40 +233,28 @@ def _scale_offset(values: np.ndarray) -> tuple[float, float]:
     return scale, offset
 
 
-class AttributeNotWritten(UserWarning):
-    """An attribute the output format cannot hold as it is; the rest of the file is written."""
-
-
-def _fit_dimension(name: str, values: np.ndarray, dim: Any) -> np.ndarray | None:
-    """``values`` as LAS dimension ``dim`` holds them, or None (with a warning naming the attribute)
-    when they do not fit: laspy would wrap 70000 to 4464 and truncate 0.37 to 0 without a word.
-    A float intensity in [0, 1] (E57's and Open3D's convention) is stretched to LAS's 0..65535.
-    The warnings are :class:`AttributeNotWritten`; the writer names the file they concern."""
+def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str) -> np.ndarray | None:
+    """``values`` as LAS dimension ``dim`` holds them, or None (with a warning naming the file
+    ``where`` and the attribute) when they do not fit: laspy would wrap 70000 to 4464 and truncate
+    0.37 to 0 without a word. A float intensity in [0, 1] (E57's and Open3D's convention) is
+    stretched to LAS's 0..65535."""
     if values.dtype.kind not in "fiub":
-        warnings.warn(f"attribute {name!r} is not numeric; LAS dimension {name!r} not written",
-                      AttributeNotWritten, stacklevel=2)
+        logger.warning("%s: attribute %r is not numeric; LAS dimension %r not written", where, name, name)
         return None
     if dim.kind.name == "FloatingPoint":
         return values
-    v = values.astype(np.float64)
-    if not np.isfinite(v).all():
-        warnings.warn(f"attribute {name!r} has NaN or infinite values; LAS dimension {name!r} not written",
-                      AttributeNotWritten, stacklevel=2)
+    if (name == "intensity" and values.dtype.kind == "f" and len(values) and np.isfinite(values).all()
+            and values.min() >= 0.0 and values.max() <= 1.0):
+        return np.round(values.astype(np.float64) * dim.max).astype(np.uint16)
+    misfit = integer_misfit(values, int(dim.min), int(dim.max))
+    if misfit is not None:
+        logger.warning("%s: attribute %r holds a value LAS dimension %r cannot (%s; it holds whole numbers "
+                       "%d..%d); not written", where, name, name, misfit, dim.min, dim.max)
         return None
-    if values.dtype.kind == "f" and (v != np.round(v)).any():
-        if name == "intensity" and len(v) and v.min() >= 0.0 and v.max() <= 1.0:
-            return np.round(v * dim.max).astype(np.int64)
-        warnings.warn(f"attribute {name!r} has fractional values; LAS dimension {name!r} holds whole numbers, "
-                      "not written", AttributeNotWritten, stacklevel=2)
-        return None
-    if len(v) and (v.min() < dim.min or v.max() > dim.max):
-        warnings.warn(f"attribute {name!r} has values outside {dim.min}..{dim.max} ({v.min():g}..{v.max():g}); "
-                      f"LAS dimension {name!r} not written", AttributeNotWritten, stacklevel=2)
-        return None
-    return v.astype(np.int64)
+    return values
 
 
-def las_bytes(cloud: PointCloud, compress: bool) -> bytes:
+def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> bytes:
     """The bytes of a LAS 1.4 file (LAZ when ``compress``): point format 6, or 7 with colours, or the
     source's format when the cloud came from LAS; attributes matching a standard dimension fill it
     (8-bit colours are widened to LAS's 16 bits), other numeric attributes become extra bytes."""
@@ -275,7 +262,9 @@ def las_bytes(cloud: PointCloud, compress: bool) -> bytes:
 
     pts = np.asarray(cloud.points, dtype=np.float64)
     n = len(pts)
+    where = clean(path) if path is not None else "LAS output"
     attrs = {k: np.asarray(v) for k, v in cloud.attributes.items() if np.asarray(v).shape == (n,)}
+    attrs = {k: v.astype(np.uint8) if v.dtype.kind == "b" else v for k, v in attrs.items()}  # flags: 0/1
     has_rgb = all(k in attrs for k in _RGB)
     fmt = cloud.meta.get("las_point_format") if cloud.source_format == "las" else None
     if fmt is None or fmt < 6:
@@ -283,6 +272,9 @@ def las_bytes(cloud: PointCloud, compress: bool) -> bytes:
     header = laspy.LasHeader(point_format=fmt, version="1.4")
     standard = set(header.point_format.dimension_names)
     extra = [k for k, v in attrs.items() if k not in standard and v.dtype.kind in "fiu" and k.isidentifier()]
+    for k in sorted(attrs.keys() - standard - set(extra) - {"X", "Y", "Z", "x", "y", "z"}):
+        logger.warning("%s: attribute %r not written (LAS extra bytes hold numbers under a name like an "
+                       "identifier)", where, k)
     if extra:
         header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=attrs[k].dtype) for k in extra])
     so = [_scale_offset(pts[:, j]) if n else (0.001, 0.0) for j in range(3)]
@@ -298,7 +290,7 @@ def las_bytes(cloud: PointCloud, compress: bool) -> bytes:
         if k in standard:
             if k in _RGB and v.dtype == np.uint8:
                 v = v.astype(np.uint16) * 257
-            fitted = _fit_dimension(k, v, header.point_format.dimension_by_name(k))
+            fitted = _fit_dimension(k, v, header.point_format.dimension_by_name(k), where)
             if fitted is not None:
                 las[k] = fitted
         elif k in extra:

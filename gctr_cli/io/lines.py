@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.errors import PointCloudError, quote
+from gctr_cli.io.cloud import ATTRIBUTE_NOTE, integer_misfit
+from gctr_cli.io.errors import PointCloudError, clean, quote
 
 __all__ = ["MAX_LINE", "LineReader", "as_declared", "numeric_text", "parse_float", "read_rows"]
 
@@ -185,9 +186,9 @@ def as_declared(path: Path, name: str, declared: str, values: np.ndarray, dtype:
     if dtype.kind not in "iu":
         return values.astype(dtype)
     info = np.iinfo(dtype)
-    misfit = ~np.isfinite(values) | (values != np.round(values)) | (values < info.min) | (values > info.max)
-    if not misfit.any():
+    misfit = integer_misfit(values, int(info.min), int(info.max))
+    if misfit is None:
         return values.astype(dtype)
-    logger.warning("%s: %r is declared %s but holds values it cannot (e.g. %g; range %d..%d, whole numbers); "
-                   "kept as float64", path, name, declared, values[misfit][0], info.min, info.max)
+    logger.warning("%s: %r is declared %s but holds values it cannot (e.g. %s; range %d..%d, whole numbers); "
+                   "kept as float64", clean(path), name, declared, misfit, info.min, info.max, extra=ATTRIBUTE_NOTE)
     return values.astype(np.float64)

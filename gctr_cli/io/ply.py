@@ -48,6 +48,7 @@ class _Prop:
     name: str
     dtype: str  # numpy type code without byte order ("f4"); for lists: the item type
     count_dtype: str | None = None  # list length type, None for scalar properties
+    declared: str = ""  # the type as the header writes it ("uchar", "uint8" ...)
 
 
 @dataclass
@@ -121,8 +122,10 @@ def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     if attributes:
         for p in vertex.props:
             if p.count_dtype is None and p.name not in ("x", "y", "z") and p.name in table:
-                attrs[p.name] = as_declared(path, p.name, _TYPE_NAMES[p.dtype], np.ascontiguousarray(table[p.name]),
-                                            np.dtype(p.dtype))
+                column = np.ascontiguousarray(table[p.name])
+                # binary values were decoded from their declared type; text may hold what it cannot
+                attrs[p.name] = (as_declared(path, p.name, p.declared, column, np.dtype(p.dtype)) if fmt == "ascii"
+                                 else column.astype(p.dtype))
     return PointCloud(pts, attrs, "ply")
 
 
@@ -176,7 +179,7 @@ def _parse_header(fh, path: Path) -> tuple[str, list[_Element], int]:
                     raise bad(f"unknown list types in {quote(line, 80)}")
                 elements[-1].props.append(_Prop(words[4], it, ct))
             elif len(words) == 3 and words[1] in PLY_TYPES:
-                elements[-1].props.append(_Prop(words[2], PLY_TYPES[words[1]]))
+                elements[-1].props.append(_Prop(words[2], PLY_TYPES[words[1]], declared=words[1]))
             else:
                 raise bad(f"unknown property type in {quote(line, 80)}")
         elif parse_float(key.encode("latin-1")) is not None:

@@ -11,7 +11,7 @@ from gctr_cli.io.cloud import PointCloud
 __all__ = ["FORMATS", "Format", "READ_EXTENSIONS", "WRITE_EXTENSIONS", "format_of"]
 
 Reader = Callable[[Path, object, int, bool], PointCloud]
-Writer = Callable[[PointCloud, bool], bytes]
+Writer = Callable[[PointCloud, bool, Path], bytes]  # (cloud, binary, the path: for messages)
 
 
 def _reader(module: str, name: str) -> Reader:
@@ -25,40 +25,40 @@ def _reader(module: str, name: str) -> Reader:
     return read
 
 
-def _write_ply(cloud: PointCloud, binary: bool) -> bytes:
+def _write_ply(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
     from gctr_cli.io.ply import ply_bytes
 
     return ply_bytes(cloud, binary)
 
 
-def _write_pcd(cloud: PointCloud, binary: bool) -> bytes:
+def _write_pcd(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
     from gctr_cli.io.pcd import pcd_bytes
 
     return pcd_bytes(cloud, binary)
 
 
-def _write_text(cloud: PointCloud, binary: bool) -> bytes:  # noqa: ARG001
+def _write_text(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
     from gctr_cli.io.text import text_bytes
 
     return text_bytes(cloud)
 
 
-def _write_pts(cloud: PointCloud, binary: bool) -> bytes:  # noqa: ARG001
+def _write_pts(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
     from gctr_cli.io.text import text_bytes
 
     return text_bytes(cloud, with_count_line=True)
 
 
-def _write_las(cloud: PointCloud, binary: bool) -> bytes:  # noqa: ARG001
+def _write_las(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
     from gctr_cli.io.las import las_bytes
 
-    return las_bytes(cloud, compress=False)
+    return las_bytes(cloud, compress=False, path=path)
 
 
-def _write_laz(cloud: PointCloud, binary: bool) -> bytes:  # noqa: ARG001
+def _write_laz(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
     from gctr_cli.io.las import las_bytes
 
-    return las_bytes(cloud, compress=True)
+    return las_bytes(cloud, compress=True, path=path)
 
 
 @dataclass(frozen=True)
