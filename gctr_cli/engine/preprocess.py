@@ -86,8 +86,12 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
     core = robust_core(sample)
     sv = np.linalg.svd(core - core.mean(axis=0), compute_uv=False)
     if sv[0] == 0.0:
-        apart = " (apart from far outliers)" if len(core) < len(sample) else ""
-        raise DegenerateCloudError(f"{name}: all {len(pts)} points are identical{apart}")
+        if len(core) == len(sample):
+            raise DegenerateCloudError(f"{name}: all {len(pts)} points are identical")
+        of = f"{len(sample)} sampled" if len(sample) < len(pts) else f"its {len(pts)}"
+        rest = len(sample) - len(core)
+        others = "the other one lies" if rest == 1 else f"the other {rest} lie"
+        raise DegenerateCloudError(f"{name}: {len(core)} of {of} points are identical; {others} far from them")
     if sv[1] < 1e-9 * sv[0]:
         raise DegenerateCloudError(f"{name}: points are collinear")
     if sv[2] < 1e-3 * sv[0]:

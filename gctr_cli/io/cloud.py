@@ -111,8 +111,10 @@ def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> None:
     if (core == core[0]).all():
         if len(core) == n:
             raise PointCloudError(f"{path}: degenerate cloud: all {n} points{dropped} are identical")
+        rest = n - len(core)
+        others = "the other one lies" if rest == 1 else f"the other {rest} lie"
         raise PointCloudError(f"{path}: degenerate cloud: {len(core)} of its {n} points{dropped} are identical; "
-                              f"the other {n - len(core)} lie far from them")
+                              f"{others} far from them")
     elif _collinear(core):
         raise PointCloudError(
             f"{path}: degenerate cloud: points are collinear ({len(core)} points{dropped} on one line{outliers})"
