@@ -214,8 +214,9 @@ def scale_bound_reached(scale: float, lo: float, hi: float) -> str:
 
     A pair whose true scale lies just beyond a bound does not fail by itself: every hypothesis and the
     refinement stop at the bound, and the answer pinned there (within 1% of the bound, 5-13% off the
-    true scale, turned 3-6° to make up for it) was accepted, at confidence 1 for a true scale 5% beyond. The margin is 2%, or a tenth of the bounds' log-width when they
-    are narrow ([0.95, 1.05]: 1%), so a range chosen tight around a known scale keeps most of itself.
+    true scale, turned 3-6° to make up for it) was accepted, at confidence 1 for a true scale 5% beyond.
+    The margin is 2%, or a tenth of the bounds' log-width when they are narrow ([0.95, 1.05]: 1%), so a
+    range chosen tight around a known scale keeps most of itself.
     """
     margin = np.exp(min(BOUND_MARGIN, 0.1 * np.log(hi / lo)))
     if scale <= lo * margin:
