@@ -230,7 +230,7 @@ class EngineConfig(_Strict):
     scale_method: Literal["auto", "edge_ratio", "umeyama"] = "auto"
     scale_bounds: tuple[float, Annotated[float, Field(allow_inf_nan=True)]] = Field(
         (0.1, 10.0), description="accepted range of the source->target scale (high may be .inf: no upper bound); "
-        "an answer within 2% of a bound is refused: the true scale may lie beyond it")
+        "an answer held by a bound is refused: the true scale lies beyond it")
     inlier_distance_ratio: float = Field(0.03, gt=0, lt=1, description="fitness distance / robust target diameter")
     min_fitness: float = Field(0.05, ge=0, le=1, description="below this the pair is reported failed")
     min_confidence: float = Field(
@@ -263,6 +263,10 @@ class EngineConfig(_Strict):
     def _bounds_order(cls, value: tuple[float, float]) -> tuple[float, float]:
         if not 0.0 < value[0] < value[1]:  # also refuses a NaN high
             raise ValueError("scale_bounds must be [low, high] with 0 < low < high")
+        if value[1] < value[0] * 1.002:  # [1, 1.0001] gave confident answers turned 6-12°
+            raise ValueError("scale_bounds narrower than 0.2% (high < 1.002 x low) leave the search and the "
+                             "refinement no room to move (their scale estimates scatter by about 1e-4); for a "
+                             "pair known to be rigid use [0.99, 1.01]")
         return value
 
 

@@ -139,6 +139,7 @@ def test_config_show_file_and_check(runner, tmp_path):
         ("engine:\n  refine:\n    end_ratio: 0.9\n", ["engine.refine.end_ratio must not exceed"]),
         ("engine:\n  refine:\n    iterations: on\n", ["engine.refine.iterations", "expected a number, got a boolean"]),
         ("engine:\n  scale_bounds: [true, 5]\n", ["engine.scale_bounds", "expected a number, got a boolean"]),
+        ("engine:\n  scale_bounds: [1, 1.0001]\n", ["engine.scale_bounds", "narrower than 0.2%", "[0.99, 1.01]"]),
         ("baselines: {kiss_matcher: {solver_noise_bound_gain: 2}}\n",
          ["baselines.kiss_matcher: solver_noise_bound_gain must not exceed robin_noise_bound_gain"]),
     ],

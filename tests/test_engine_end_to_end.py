@@ -412,21 +412,40 @@ def test_run_search_is_registers_search(monkeypatch):
         assert ours.overlap == theirs.overlap and np.array_equal(ours.transform, theirs.transform)
 
 
-@pytest.mark.parametrize("true_scale", [0.095, 10.5])
-def test_true_scale_just_beyond_scale_bounds_is_refused_not_pinned(true_scale):
-    """Every hypothesis and the refinement stop at a scale bound, so a pair whose true scale lies just
-    beyond it came back `ok` at confidence 1, pinned at the bound and turned 4-6° to make up for it."""
-    rng = np.random.default_rng(3)
+def _scaled_half_bunny(true_scale: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bunny and a random half of it under a similarity of ``true_scale`` (little noise)."""
+    rng = np.random.default_rng(seed)
     src = _model("bunny")
     tgt = src[np.sort(rng.choice(len(src), len(src) // 2, replace=False))]
     T = to_matrix(true_scale, random_rotation(rng), np.array([1.0, -2.0, 0.5]))
-    res = register(src, apply(T, tgt + rng.normal(scale=0.0005, size=tgt.shape)), EngineConfig(), seed=0)
+    return src, apply(T, tgt + rng.normal(scale=0.0005, size=tgt.shape)), T
+
+
+@pytest.mark.parametrize("true_scale, bounds, seed", [(0.095, (0.1, 10.0), 3), (10.5, (0.1, 10.0), 3),
+                                                      (0.93, (0.95, 1.05), 4)])
+def test_true_scale_beyond_scale_bounds_is_refused_not_pinned(true_scale, bounds, seed):
+    """Every hypothesis and the refinement stop at a scale bound, so a pair whose true scale lies just
+    beyond it came back `ok` at confidence 1, pinned at the bound (or a step inside it: 0.96 for a true
+    0.93 within [0.95, 1.05]) and turned 2-6° to make up for it."""
+    src, tgt, T = _scaled_half_bunny(true_scale, seed)
+    res = register(src, tgt, EngineConfig(scale_bounds=bounds), seed=0)
     end = "lower" if true_scale < 1 else "upper"
-    assert res.status == "failed" and res.confidence > 0.9  # it was accepted, and confidently
-    assert res.message == (f"scale {res.scale:.4g} is at the {end} end of engine.scale_bounds [0.1, 10.0]: the true "
-                           "scale may lie beyond it, and the search cannot reach it (widen scale_bounds)")
-    wide = register(src, apply(T, tgt + rng.normal(scale=0.0005, size=tgt.shape)),
-                    EngineConfig(scale_bounds=(0.01, 100.0)), seed=0)
+    assert res.status == "failed" and res.confidence > 0.9, res  # it was accepted, and confidently
+    prefix = f"scale {res.scale:.4g} is held by the {end} end of engine.scale_bounds [{bounds[0]}, {bounds[1]}]: "
+    assert res.message.startswith(prefix + "refined without it, the alignment moves to scale "), res.message
+    free = float(res.message.split("moves to scale ")[1].split()[0])
+    assert abs(free / true_scale - 1) < 0.01  # the refinement without bounds finds the true scale
+    wide = register(src, tgt, EngineConfig(scale_bounds=(0.01, 100.0)), seed=0)
     assert wide.status == "ok", wide.message  # the same pair within wider bounds
-    e = transform_errors(wide.transform, T, bbox_diagonal(apply(T, tgt)))
+    e = transform_errors(wide.transform, T, bbox_diagonal(tgt))
     assert e.rot_err_deg < 1.0 and e.scale_err < 0.01, e
+
+
+@pytest.mark.parametrize("true_scale, bounds", [(0.101, (0.1, 10.0)), (10.0, (0.1, 10.0)), (1.049, (0.95, 1.05))])
+def test_a_true_scale_at_or_just_inside_a_bound_is_accepted(true_scale, bounds):
+    """A 10x unit change sits on the default upper bound; it must stay a right answer, not a refusal."""
+    src, tgt, T = _scaled_half_bunny(true_scale, 3)
+    res = register(src, tgt, EngineConfig(scale_bounds=bounds), seed=0)
+    assert res.status == "ok", res.message
+    e = transform_errors(res.transform, T, bbox_diagonal(tgt))
+    assert e.rot_err_deg < 0.5 and e.scale_err < 0.002, e

@@ -98,25 +98,31 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
     """Scaled ICP polish of a coarse transform on the refinement clouds, kept only when its tight surface
     agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
     verdict's objective exposes it). Returns the transform and its tight agreement."""
-    r, v = cfg.refine, cfg.verdict
     before = tight_agreement(T_n, src_ref, tgt_ref, test)
-    if not r.enabled:
+    if not cfg.refine.enabled:
         return T_n, before
     t = time.perf_counter()
-    size = smaller_cloud(similarity_scale(T_n))
-    start, end = r.start_ratio * size, r.end_ratio * size
-    if r.method == "point_to_plane":
-        T_r, _ = scaled_point_to_plane_icp(src_ref.points, tgt_ref.points, tgt_ref.normals, T_n, r.iterations,
-                                           start, end, bounds_n, tgt_ref.tree,
-                                           src_normals=src_ref.normals, max_normal_angle_deg=v.max_normal_angle_deg,
-                                           src_tree=src_ref.tree, symmetric=r.symmetric,
-                                           max_matches=r.max_matches)
-    else:
-        T_r, _ = trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, start, end, bounds_n,
-                                    tgt_ref.tree)
+    T_r = icp(T_n, src_ref, tgt_ref, cfg, bounds_n)
     timer.add("refine", t)
     after = tight_agreement(T_r, src_ref, tgt_ref, test)
     return (T_r, after) if after.score >= before.score else (T_n, before)
+
+
+def icp(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
+        bounds_n: tuple[float, float]) -> np.ndarray:
+    """The refinement's scaled ICP from ``T_n`` on the refinement clouds (normalised units); it stops
+    where a step would leave ``bounds_n``."""
+    r, v = cfg.refine, cfg.verdict
+    size = smaller_cloud(similarity_scale(T_n))
+    start, end = r.start_ratio * size, r.end_ratio * size
+    if r.method == "point_to_plane":
+        return scaled_point_to_plane_icp(src_ref.points, tgt_ref.points, tgt_ref.normals, T_n, r.iterations,
+                                         start, end, bounds_n, tgt_ref.tree,
+                                         src_normals=src_ref.normals, max_normal_angle_deg=v.max_normal_angle_deg,
+                                         src_tree=src_ref.tree, symmetric=r.symmetric,
+                                         max_matches=r.max_matches)[0]
+    return trimmed_scaled_icp(src_ref.points, tgt_ref.points, T_n, r.iterations, start, end, bounds_n,
+                              tgt_ref.tree)[0]
 
 
 def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementCloud, tgt_ref: RefinementCloud,

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.config import Config, EngineConfig
-from gctr_cli.engine.decide import decide, refusal_message, similarity_scale, tight_agreement, tight_test
+from gctr_cli.engine.decide import decide, icp, refusal_message, similarity_scale, tight_agreement, tight_test
 from gctr_cli.engine.halves import half_candidates
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, prepare_cloud
 from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, normalise, validate_cloud
@@ -105,8 +105,10 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine)
 
 
-#: an answer within this share (in log scale) of a finite ``scale_bounds`` end is refused (see scale_bound_reached)
-BOUND_MARGIN = 0.02
+#: an answer within this factor of a finite ``scale_bounds`` end is checked by :func:`held_at_bound`
+NEAR_BOUND = 1.25
+#: how far beyond a bound the unbounded refinement may end before the answer counts as held there
+BOUND_TOLERANCE = 0.005
 
 
 def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Config | None = None, seed: int = 0, *,
@@ -180,6 +182,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
     T = denormalise(T_n, ns, nt)
     scale, rotation, translation = split(T)
     lo, hi = cfg.scale_bounds
+    ratio = ns.size / nt.size  # normalised scale per original scale
     status, message = "ok", ""
     if best.n_inliers < cfg.ransac.min_inliers:
         status, message = "failed", (f"too weak evidence: {best.n_inliers} RANSAC inliers "
@@ -190,11 +193,13 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
         status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
     elif verdict.confidence < cfg.min_confidence:
         status, message = "failed", refusal_message(verdict, cfg)
-        if end := scale_bound_reached(scale, lo, hi):
-            message += f"; its scale {scale:.4g} is at the {end} end of engine.scale_bounds [{lo}, {hi}]"
-    elif end := scale_bound_reached(scale, lo, hi):
-        status, message = "failed", (f"scale {scale:.4g} is at the {end} end of engine.scale_bounds [{lo}, {hi}]: "
-                                     "the true scale may lie beyond it, and the search cannot reach it "
+        end, free = held_at_bound(scale, T_n, refinement, cfg, ratio) if refinement else ("", 0.0)
+        if end:
+            message += (f"; its scale {scale:.4g} is held by the {end} end of engine.scale_bounds [{lo}, {hi}] "
+                        f"(without it: {free:.4g})")
+    elif refinement and (bound := held_at_bound(scale, T_n, refinement, cfg, ratio))[0]:
+        status, message = "failed", (f"scale {scale:.4g} is held by the {bound[0]} end of engine.scale_bounds "
+                                     f"[{lo}, {hi}]: refined without it, the alignment moves to scale {bound[1]:.4g} "
                                      "(widen scale_bounds)")
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
@@ -209,21 +214,28 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
     )
 
 
-def scale_bound_reached(scale: float, lo: float, hi: float) -> str:
-    """``"lower"`` or ``"upper"`` when ``scale`` sits within :data:`BOUND_MARGIN` of that bound, else ``""``.
+def held_at_bound(scale: float, T_n: np.ndarray, refinement: tuple[RefinementCloud, RefinementCloud],
+                  cfg: EngineConfig, ratio: float) -> tuple[str, float]:
+    """(``"lower"`` or ``"upper"``, the scale without bounds) when the answer is held by that end of
+    ``scale_bounds``, else ``("", nan)``. ``scale`` is the answer's (original units), ``T_n`` the same
+    answer normalised, ``ratio`` the normalised scale per original one.
 
-    A pair whose true scale lies just beyond a bound does not fail by itself: every hypothesis and the
-    refinement stop at the bound, and the answer pinned there (within 1% of the bound, 5-13% off the
-    true scale, turned 3-6° to make up for it) was accepted, at confidence 1 for a true scale 5% beyond.
-    The margin is 2%, or a tenth of the bounds' log-width when they are narrow ([0.95, 1.05]: 1%), so a
-    range chosen tight around a known scale keeps most of itself.
+    Every hypothesis and every refinement step stops at a bound, so a pair whose true scale lies beyond
+    it came back pinned there (5-13% off the true scale, turned 3-6° to make up for it) and was
+    accepted, at confidence 1 for a true scale 5% beyond; the ICP stops where its next step would
+    leave the bounds, which can be a few percent inside. So an answer within :data:`NEAR_BOUND` of a
+    finite end is refined once more without bounds: held means that refinement ends beyond the end
+    by more than :data:`BOUND_TOLERANCE` (a true scale on the bound itself, 10 for a cm/mm pair, passes).
     """
-    margin = np.exp(min(BOUND_MARGIN, 0.1 * np.log(hi / lo)))
-    if scale <= lo * margin:
-        return "lower"
-    if np.isfinite(hi) and scale >= hi / margin:
-        return "upper"
-    return ""
+    lo, hi = cfg.scale_bounds
+    if not (scale < lo * NEAR_BOUND or scale > hi / NEAR_BOUND):
+        return "", float("nan")
+    free = similarity_scale(icp(T_n, *refinement, cfg, (0.0, np.inf))) / ratio
+    if free < lo * (1.0 - BOUND_TOLERANCE):
+        return "lower", free
+    if free > hi * (1.0 + BOUND_TOLERANCE):
+        return "upper", free
+    return "", free
 
 
 def _prepared_pair(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, timer: StageTimer,
