@@ -19,7 +19,7 @@ import scipy
 from conftest import translation
 
 from gctr_cli.config import EngineConfig
-from gctr_cli.engine import RegistrationResult, register
+from gctr_cli.engine import RegistrationResult, register, score_transform
 from gctr_cli.geometry import apply, random_rotation, to_matrix
 from gctr_cli.io import load_point_cloud
 from gctr_cli.metrics import TransformErrors, is_similarity, transform_errors
@@ -316,8 +316,10 @@ def _collinear() -> np.ndarray:
                             "with gctr_cli.io.load_point_cloud"),
     (lambda: [[1.0, 2.0, 3.0], [1.0, 2.0]], "expected an (N, 3) array of point coordinates, got list ("),
     (lambda: np.ones((40, 3), dtype=bool), "got booleans"),
+    (lambda: _good_cloud().astype(complex), "got complex numbers"),
+    (lambda: np.ma.masked_array(_planar()[:12], mask=np.arange(36).reshape(12, 3) < 9), "only 9 finite points"),
 ], ids=["planar", "five_points", "collinear", "identical", "all_nan", "empty", "wrong_shape", "path", "ragged",
-        "booleans"])
+        "booleans", "complex", "masked"])
 def test_degenerate_inputs_fail_gracefully(bad, expected, which):
     good = _good_cloud()
     src, tgt = (bad(), good) if which == "source" else (good, bad())
@@ -333,6 +335,8 @@ def test_a_seed_that_is_not_a_non_negative_integer_is_an_error(seed):
     """``seed=None`` drew fresh entropy: two calls gave different transforms and the seed was lost."""
     with pytest.raises(ValueError, match="seed must be a non-negative integer"):
         register(_good_cloud(), _good_cloud(), EngineConfig(), seed=seed)
+    with pytest.raises(ValueError, match="seed must be a non-negative integer"):
+        score_transform(_good_cloud(), _good_cloud(), np.eye(4), EngineConfig(), seed=seed)
 
 
 def test_stray_far_point_beside_utm_coordinates_registers():

@@ -262,6 +262,12 @@ def test_ascii_ply_pcd_attribute_its_type_cannot_hold_is_kept_not_wrapped(tmp_pa
     assert wide["t"].dtype == wide["s"].dtype == np.float64  # not wrapped to 0 and to -2**63
     assert [r.getMessage().split(" but ")[0] for r in caplog.records] == [f"{pcd}: 't' is declared U 8",
                                                                           f"{pcd}: 's' is declared I 8"]
+    caplog.clear()  # below 2**63 the values fit, but text beyond 2**53 is rounded: said, not hidden
+    pcd.write_text(pcd.read_text().replace("18446744073709551615 9223372036854775807", "1700000000123456789 7"))
+    assert read_point_cloud(pcd).attributes["t"].dtype == np.uint64
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{pcd}: 't' (U 8) holds whole numbers beyond 2**53, which text is read as float64 and rounds (e.g. "
+        "1700000000123456768); its last digits may differ from the file"]
 
 
 def test_ply_crlf_header(tmp_path, cloud):

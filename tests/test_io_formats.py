@@ -225,13 +225,14 @@ def test_las_writer_stretches_unit_float_intensity_and_never_wraps(tmp_path, cap
     caplog.set_level("WARNING", logger="gctr_cli.io")
     attrs = {"intensity": np.array([1, 2, 3, 4, 70000] * 2), "classification": np.array([0.0, 1.5, 2, 3, 4] * 2),
              "user_data": np.array([1.0, 2.0, 3.0, 4.0, 5.0] * 2), "point_source_id": np.full(10, 2**64 - 1, np.uint64),
-             "flag": np.array([True, False] * 5), "label": np.array(["a"] * 10)}
+             "flag": np.array([True, False] * 5), "label": np.array(["a"] * 10), "half": np.ones(10, np.float16)}
     write_point_cloud(tmp_path / "bad.las", PointCloud(pts, attrs))
     back = read_point_cloud(tmp_path / "bad.las").attributes
     for k in ("intensity", "classification", "point_source_id"):
         assert not back[k].any(), k  # left empty, not wrapped
     np.testing.assert_array_equal(back["user_data"], [1, 2, 3, 4, 5] * 2)  # whole floats fit
     np.testing.assert_array_equal(back["flag"], [1, 0] * 5)  # flags as 0/1 extra bytes
+    assert back["half"].dtype == np.float32 and (back["half"] == 1).all()  # laspy has no float16 extra bytes
     out = tmp_path / "bad.las"
     assert sorted(r.getMessage() for r in caplog.records) == sorted([
         f"{out}: attribute 'intensity' holds a value LAS dimension 'intensity' cannot (70000; it holds whole "

@@ -126,8 +126,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
     TypeError.
     """
     del source_normals, target_normals  # normals are recomputed on the downsampled clouds
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer (every random draw comes from it), got {seed!r}")
+    _check_seed(seed)
     if isinstance(config, Config):
         config = config.engine
     if config is not None and not isinstance(config, EngineConfig):
@@ -238,6 +237,13 @@ def held_at_bound(scale: float, T_n: np.ndarray, refinement: tuple[RefinementClo
     return "", free
 
 
+def _check_seed(seed: object) -> None:
+    """A ValueError unless ``seed`` is a non-negative integer (``None`` would draw fresh entropy: the
+    answer could not be reproduced)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer (every random draw comes from it), got {seed!r}")
+
+
 def _prepared_pair(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, timer: StageTimer,
                    n_extra: int = 0) -> tuple[NormalisedCloud, NormalisedCloud, PreparedCloud, PreparedCloud,
                                                np.random.Generator, list[np.random.Generator]]:
@@ -268,6 +274,7 @@ def score_transform(source: np.ndarray, target: np.ndarray, transform: np.ndarra
     engine's answer tells whether a failure is a search miss (truth scores higher), an objective that
     cannot separate them (answer scores higher) or a precision problem (equal within noise).
     """
+    _check_seed(seed)
     cfg = config if config is not None else EngineConfig()
     ns, nt, src, tgt, _, _ = _prepared_pair(source, target, cfg, seed, StageTimer({}))
     return surface_agreement(_normalised(transform, ns, nt), src.surface, tgt.surface, cfg.inlier_distance_ratio,

@@ -61,14 +61,20 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
         raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got the path "
                                    f"{os.fsdecode(points)!r}: read it with gctr_cli.io.load_point_cloud")
     try:  # a ragged list ... is an answer naming the problem, not numpy's exception
-        pts = np.asarray(points)
-        is_bool = pts.dtype.kind == "b"
-        pts = np.asarray(pts, dtype=np.float64)
+        # masked points are left out, like non-finite ones
+        pts = np.ma.filled(np.ma.asarray(points, dtype=np.float64), np.nan) if np.ma.isMaskedArray(points) \
+            else np.asarray(points)
+        kind = pts.dtype.kind
+        if kind not in "cmM":
+            pts = np.asarray(pts, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got "
                                    f"{type(points).__name__} ({str(exc).split(chr(10))[0][:200]}); read a file "
                                    "with gctr_cli.io.load_point_cloud") from None
-    if is_bool:
+    if kind in "cmM":
+        raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got "
+                                   f"{'complex numbers' if kind == 'c' else 'dates or durations'}")
+    if kind == "b":
         raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got booleans")
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise DegenerateCloudError(f"{name}: expected an (N, 3) array of points, got shape {pts.shape}")

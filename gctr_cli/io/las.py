@@ -264,7 +264,9 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     n = len(pts)
     where = clean(path) if path is not None else "LAS output"
     attrs = {k: np.asarray(v) for k, v in cloud.attributes.items() if np.asarray(v).shape == (n,)}
-    attrs = {k: v.astype(np.uint8) if v.dtype.kind == "b" else v for k, v in attrs.items()}  # flags: 0/1
+    # flags as 0/1; LAS extra bytes have no 16-bit float
+    attrs = {k: v.astype(np.uint8) if v.dtype.kind == "b" else v.astype(np.float32) if v.dtype == np.float16 else v
+             for k, v in attrs.items()}
     has_rgb = all(k in attrs for k in _RGB)
     fmt = cloud.meta.get("las_point_format") if cloud.source_format == "las" else None
     if fmt is None or fmt < 6:

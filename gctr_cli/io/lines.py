@@ -188,6 +188,10 @@ def as_declared(path: Path, name: str, declared: str, values: np.ndarray, dtype:
     info = np.iinfo(dtype)
     misfit = integer_misfit(values, int(info.min), int(info.max))
     if misfit is None:
+        if dtype.itemsize == 8 and len(values) and np.abs(values).max() > 2.0**53:
+            logger.warning("%s: %r (%s) holds whole numbers beyond 2**53, which text is read as float64 and "
+                           "rounds (e.g. %d); its last digits may differ from the file", clean(path), name, declared,
+                           int(values[np.argmax(np.abs(values))]), extra=ATTRIBUTE_NOTE)
         return values.astype(dtype)
     logger.warning("%s: %r is declared %s but holds values it cannot (e.g. %s; range %d..%d, whole numbers); "
                    "kept as float64", clean(path), name, declared, misfit, info.min, info.max, extra=ATTRIBUTE_NOTE)
