@@ -105,7 +105,7 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine)
 
 
-#: an answer within this factor of a finite ``scale_bounds`` end is checked by :func:`held_at_bound`
+#: an answer within this factor of a finite ``scale_bounds`` end is checked by :func:`settle_at_bound`
 NEAR_BOUND = 1.25
 #: how far beyond a bound the unbounded refinement may end before the answer counts as held there
 BOUND_TOLERANCE = 0.005
@@ -175,30 +175,32 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
         return _failed("no consistent correspondences found (RANSAC found no valid similarity; if the clouds' "
                        f"units may differ by more than engine.scale_bounds {list(cfg.scale_bounds)} allows, "
                        "widen it)", seed, start, timer.timings)
+    lo, hi = cfg.scale_bounds
+    ratio = ns.size / nt.size  # normalised scale per original scale
+    t = time.perf_counter()
+    T_n, held, free = settle_at_bound(T_n, refinement, cfg, ratio) if refinement else (T_n, "", float("nan"))
+    timer.add("refine", t)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.
     best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
     T = denormalise(T_n, ns, nt)
     scale, rotation, translation = split(T)
-    lo, hi = cfg.scale_bounds
-    ratio = ns.size / nt.size  # normalised scale per original scale
     status, message = "ok", ""
     if best.n_inliers < cfg.ransac.min_inliers:
         status, message = "failed", (f"too weak evidence: {best.n_inliers} RANSAC inliers "
                                      f"(need {cfg.ransac.min_inliers})")
     elif fit.fitness < cfg.min_fitness:
         status, message = "failed", f"too weak evidence: fitness {fit.fitness:.3f} below {cfg.min_fitness}"
-    elif not lo <= scale <= hi:
+    elif not lo * (1.0 - BOUND_TOLERANCE) <= scale <= hi * (1.0 + BOUND_TOLERANCE):
         status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
     elif verdict.confidence < cfg.min_confidence:
         status, message = "failed", refusal_message(verdict, cfg)
-        end, free = held_at_bound(scale, T_n, refinement, cfg, ratio) if refinement else ("", 0.0)
-        if end:
-            message += (f"; its scale {scale:.4g} is held by the {end} end of engine.scale_bounds [{lo}, {hi}] "
+        if held:
+            message += (f"; its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] "
                         f"(without it: {free:.4g})")
-    elif refinement and (bound := held_at_bound(scale, T_n, refinement, cfg, ratio))[0]:
-        status, message = "failed", (f"scale {scale:.4g} is held by the {bound[0]} end of engine.scale_bounds "
-                                     f"[{lo}, {hi}]: refined without it, the alignment moves to scale {bound[1]:.4g} "
+    elif held:
+        status, message = "failed", (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds "
+                                     f"[{lo}, {hi}]: refined without it, the alignment moves to scale {free:.4g} "
                                      "(widen scale_bounds)")
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
@@ -213,28 +215,36 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
     )
 
 
-def held_at_bound(scale: float, T_n: np.ndarray, refinement: tuple[RefinementCloud, RefinementCloud],
-                  cfg: EngineConfig, ratio: float) -> tuple[str, float]:
-    """(``"lower"`` or ``"upper"``, the scale without bounds) when the answer is held by that end of
-    ``scale_bounds``, else ``("", nan)``. ``scale`` is the answer's (original units), ``T_n`` the same
-    answer normalised, ``ratio`` the normalised scale per original one.
+def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, RefinementCloud], cfg: EngineConfig,
+                    ratio: float) -> tuple[np.ndarray, str, float]:
+    """The answer ``T_n`` (normalised; ``ratio`` = normalised scale per original one) settled against
+    ``scale_bounds``: ``(transform, held, scale without bounds)``, ``held`` being ``"lower"``,
+    ``"upper"`` or ``""``.
 
     Every hypothesis and every refinement step stops at a bound, so a pair whose true scale lies beyond
-    it came back pinned there (5-13% off the true scale, turned 3-6° to make up for it) and was
-    accepted, at confidence 1 for a true scale 5% beyond; the ICP stops where its next step would
-    leave the bounds, which can be a few percent inside. So an answer within :data:`NEAR_BOUND` of a
-    finite end is refined once more without bounds: held means that refinement ends beyond the end
-    by more than :data:`BOUND_TOLERANCE` (a true scale on the bound itself, 10 for a cm/mm pair, passes).
+    it came back pinned there or a step inside (2-13% off the true scale, turned 2-6° to make up for it)
+    and was accepted, at confidence 1 for a true scale 5% beyond. So an answer within
+    :data:`NEAR_BOUND` of a finite end is refined once more without bounds. If that ends beyond the
+    end by more than :data:`BOUND_TOLERANCE`, the answer is held there (refused by the caller).
+    Otherwise the unbounded refinement is the answer when the verdict's tight test scores it at least
+    as well: a true scale on a bound (10 for a cm/mm pair) or just beyond came back held a step inside
+    it and turned 3-5°.
     """
     lo, hi = cfg.scale_bounds
+    scale = similarity_scale(T_n) / ratio
     if not (scale < lo * NEAR_BOUND or scale > hi / NEAR_BOUND):
-        return "", float("nan")
-    free = similarity_scale(icp(T_n, *refinement, cfg, (0.0, np.inf))) / ratio
+        return T_n, "", float("nan")
+    src_ref, tgt_ref = refinement
+    T_free = icp(T_n, src_ref, tgt_ref, cfg, (0.0, np.inf))
+    free = similarity_scale(T_free) / ratio
     if free < lo * (1.0 - BOUND_TOLERANCE):
-        return "lower", free
+        return T_n, "lower", free
     if free > hi * (1.0 + BOUND_TOLERANCE):
-        return "upper", free
-    return "", free
+        return T_n, "upper", free
+    test = tight_test(src_ref, tgt_ref, similarity_scale(T_n), cfg)
+    if tight_agreement(T_free, src_ref, tgt_ref, test).score >= tight_agreement(T_n, src_ref, tgt_ref, test).score:
+        return T_free, "", free
+    return T_n, "", free
 
 
 def _check_seed(seed: object) -> None:
