@@ -177,9 +177,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
                        "widen it)", seed, start, timer.timings)
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size  # normalised scale per original scale
-    t = time.perf_counter()
-    T_n, held, free = settle_at_bound(T_n, refinement, cfg, ratio) if refinement else (T_n, "", float("nan"))
-    timer.add("refine", t)
+    T_n, held, free = settle_at_bound(T_n, refinement, cfg, ratio, timer) if refinement else (T_n, "", float("nan"))
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.
     best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
@@ -216,7 +214,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
 
 
 def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, RefinementCloud], cfg: EngineConfig,
-                    ratio: float) -> tuple[np.ndarray, str, float]:
+                    ratio: float, timer: StageTimer) -> tuple[np.ndarray, str, float]:
     """The answer ``T_n`` (normalised; ``ratio`` = normalised scale per original one) settled against
     ``scale_bounds``: ``(transform, held, scale without bounds)``, ``held`` being ``"lower"``,
     ``"upper"`` or ``""``.
@@ -227,20 +225,24 @@ def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, Refineme
     :data:`NEAR_BOUND` of a finite end is refined once more without bounds. If that ends beyond the
     end by more than :data:`BOUND_TOLERANCE`, the answer is held there (refused by the caller).
     Otherwise the unbounded refinement is the answer when the verdict's tight test scores it at least
-    as well: a true scale on a bound (10 for a cm/mm pair) or just beyond came back held a step inside
-    it and turned 3-5°.
+    as well (and ``refine.enabled``): a true scale on a bound (10 for a cm/mm pair) or just beyond came
+    back held a step inside it and turned 3-5°. The refinement's time is booked under ``refine``.
     """
     lo, hi = cfg.scale_bounds
     scale = similarity_scale(T_n) / ratio
     if not (scale < lo * NEAR_BOUND or scale > hi / NEAR_BOUND):
         return T_n, "", float("nan")
     src_ref, tgt_ref = refinement
+    t = time.perf_counter()
     T_free = icp(T_n, src_ref, tgt_ref, cfg, (0.0, np.inf))
+    timer.add("refine", t)
     free = similarity_scale(T_free) / ratio
     if free < lo * (1.0 - BOUND_TOLERANCE):
         return T_n, "lower", free
     if free > hi * (1.0 + BOUND_TOLERANCE):
         return T_n, "upper", free
+    if not cfg.refine.enabled:
+        return T_n, "", free
     test = tight_test(src_ref, tgt_ref, similarity_scale(T_n), cfg)
     if tight_agreement(T_free, src_ref, tgt_ref, test).score >= tight_agreement(T_n, src_ref, tgt_ref, test).score:
         return T_free, "", free
