@@ -61,12 +61,11 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
         raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got the path "
                                    f"{os.fsdecode(points)!r}: read it with gctr_cli.io.load_point_cloud")
     try:  # a ragged list ... is an answer naming the problem, not numpy's exception
-        # masked points are left out, like non-finite ones
-        pts = np.ma.filled(np.ma.asarray(points, dtype=np.float64), np.nan) if np.ma.isMaskedArray(points) \
-            else np.asarray(points)
-        kind = pts.dtype.kind
-        if kind not in "cmM":
-            pts = np.asarray(pts, dtype=np.float64)
+        if np.ma.isMaskedArray(points):  # masked points are left out, like non-finite ones
+            points = np.ma.filled(np.ma.asarray(points, dtype=np.float64), np.nan)
+        raw = np.asarray(points)
+        kind = raw.dtype.kind
+        pts = raw if kind in "cmM" else raw.astype(np.float64, copy=False)
     except (TypeError, ValueError) as exc:
         raise DegenerateCloudError(f"{name}: expected an (N, 3) array of point coordinates, got "
                                    f"{type(points).__name__} ({str(exc).split(chr(10))[0][:200]}); read a file "
