@@ -415,7 +415,8 @@ def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the 
     INPUT may be any format gctr reads (.ply .pcd .xyz .pts .txt .las .laz .e57); OUTPUT's extension
     chooses its format. Coordinates stay float64 (LAS/LAZ: a scale fine enough for the extent);
     attributes (colours, intensity, classification ...) are kept where OUTPUT's format allows, and
-    normals are rotated.
+    normals are turned with the surface (for a matrix that is not a similarity, by its inverse
+    transpose, so they stay perpendicular to it).
 
     \b
     Example:

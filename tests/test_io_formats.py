@@ -268,6 +268,25 @@ def test_transform_rotates_normals_and_moves_utm_points_precisely(rich_cloud):
     np.testing.assert_array_equal(moved.attributes["intensity"], rich_cloud.attributes["intensity"])
 
 
+def test_transform_keeps_normals_perpendicular_under_a_shear_or_a_mirror():
+    # the plane z = 0.5 x + 0.25 y, normals stored as nx ny nz; a shear and a mirror move points and normals
+    # differently: the normals must stay perpendicular to the moved plane (rotated by A, they would not)
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1, 1, (200, 2))
+    pts = np.c_[xy, 0.5 * xy[:, 0] + 0.25 * xy[:, 1]]
+    n = np.array([-0.5, -0.25, 1.0]) / np.linalg.norm([-0.5, -0.25, 1.0])
+    cloud = PointCloud(pts, {k: np.full(200, v, np.float32) for k, v in zip(("nx", "ny", "nz"), n, strict=True)})
+    for A in (np.array([[1.0, 0.8, 0.0], [0.0, 1.0, 0.0], [0.0, 0.3, 2.0]]), np.diag([-1.0, 1.0, 1.0])):
+        T = np.eye(4)
+        T[:3, :3] = A
+        moved = transform_cloud(cloud, T)
+        m = np.stack([moved.attributes[k] for k in ("nx", "ny", "nz")], 1).astype(np.float64)
+        edges = moved.points[1:] - moved.points[0]
+        assert np.abs(edges @ m[0]).max() < 1e-6 * np.abs(edges).max()  # perpendicular to the moved plane
+        np.testing.assert_allclose(np.linalg.norm(m, axis=1), 1, atol=1e-6)
+        assert m[0] @ (A @ n) > 0  # still on the same side of the surface
+
+
 def test_write_aligned_checks_matrix_and_output_before_reading(tmp_path, rich_cloud):
     write_point_cloud(tmp_path / "in.ply", rich_cloud)
     T = to_matrix(0.5, rotation([0, 0, 1], 90), [1.0, 2.0, 3.0])

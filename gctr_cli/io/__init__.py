@@ -199,8 +199,8 @@ def write_aligned(input_path: str | Path, matrix: np.ndarray, output_path: str |
                   reread: bool = False) -> PointCloud:
     """Read the cloud ``input_path``, move it by the 4x4 similarity ``matrix`` (``p' = s·R·p + t``,
     the source->target matrix of a registration) and write it to ``output_path``, keeping its
-    attributes where the output format allows (normals are rotated). Formats follow the extensions
-    (any readable format in; PLY, PCD, LAS/LAZ, XYZ/PTS/TXT out).
+    attributes where the output format allows (normals are turned with the surface). Formats follow the
+    extensions (any readable format in; PLY, PCD, LAS/LAZ, XYZ/PTS/TXT out).
 
     This is the one call a caller needs to write an aligned cloud, e.g. the batch runner's
     ``OUTDIR/aligned/<pair_id>.<ext>``. With ``reread`` (the caller registered this file, so its

@@ -122,11 +122,12 @@ def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> None:
 
 
 def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
-    """``cloud`` moved by the 4x4 similarity ``T`` (``p' = s·R·p + t``), in float64.
+    """``cloud`` moved by the 4x4 matrix ``T`` (``p' = A·p + t``; ``A = s·R`` for a similarity), in float64.
 
     Points are moved about their mean, so UTM-size coordinates keep their precision; normal
-    attributes (``nx ny nz`` / ``normal_x ...``) are rotated and renormalised; every other attribute
-    is copied unchanged.
+    attributes (``nx ny nz`` / ``normal_x ...``) are mapped by the inverse transpose of ``A`` (rotated,
+    for a similarity) and renormalised, so they stay perpendicular to the moved surface; every other
+    attribute is copied unchanged.
     """
     M = np.asarray(T, dtype=np.float64)
     A, t = M[:3, :3], M[:3, 3]
@@ -134,11 +135,12 @@ def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
     c = pts.mean(axis=0) if len(pts) else np.zeros(3)
     moved = (pts - c) @ A.T + (A @ c + t)
     attrs = dict(cloud.attributes)
-    det = float(np.linalg.det(A))
-    s = np.cbrt(det) if det != 0 else 1.0
+    # normals follow the inverse transpose (for a similarity s·R that is R): a shear or an unequal
+    # stretch turns a surface's normals differently from its points, and they must stay perpendicular
+    normal_map = np.linalg.pinv(A)
     for names in NORMAL_NAMES:
         if all(n in attrs for n in names):
-            nrm = np.stack([attrs[n].astype(np.float64) for n in names], axis=1) @ (A / s).T
+            nrm = np.stack([attrs[n].astype(np.float64) for n in names], axis=1) @ normal_map
             length = np.linalg.norm(nrm, axis=1, keepdims=True)
             nrm = np.divide(nrm, length, out=nrm.copy(), where=length > 0)
             for j, n in enumerate(names):
