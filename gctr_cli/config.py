@@ -177,6 +177,10 @@ class VerdictConfig(_Strict):
         20.0, gt=0, le=90, description="final comparison: normals agree below this angle")
     full_margin: float = Field(
         0.25, gt=0, le=1, description="lead over the best distinct rival at which confidence reaches 1")
+    full_margin_points: int = Field(
+        800, ge=0,
+        description="verdict samples of fewer points (sparse clouds) need a larger lead: the confidence is "
+                    "multiplied by sqrt(n / this) for a smaller sample of n points; 0 = off")
     ambiguity_ratio: float = Field(
         0.8, gt=0, le=1,
         description="a refused answer is called ambiguous when its rival reaches this share of its score")

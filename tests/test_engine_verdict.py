@@ -15,6 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from data_scripts.make_benchmark import make_lowoverlap_pair, make_part_pair, make_sfm_pair
+from data_scripts.sparse_probe import sparse_pair
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine import register, score_transform
 from gctr_cli.engine.halves import source_halves
@@ -25,6 +26,7 @@ from gctr_cli.engine.verdict import (
     confidence,
     displacement,
     normal_space_weights,
+    sample_weight,
     shared_displacement,
     surface_agreement,
 )
@@ -441,6 +443,54 @@ def test_refusal_message_states_the_share_explained_and_the_lead():
     v = Verdict(confidence=0.1496, score=0.5, rival_score=0.4626, support=1.0, agreement=a)
     assert "confidence 0.14, threshold 0.15" in refusal_message(v, cfg)
     assert message(0.50, 0.48).startswith("ambiguous: two distinct alignments")
+
+
+def test_a_sparse_verdict_needs_a_larger_lead():
+    """The score's noise grows like 1/sqrt(n): below ``full_margin_points`` sample points the confidence is
+    scaled by sqrt(n / full_margin_points), and a refusal says so."""
+    from gctr_cli.engine.decide import refusal_message
+    from gctr_cli.engine.verdict import Verdict
+
+    assert sample_weight(800, 800) == 1.0 and sample_weight(5000, 800) == 1.0 and sample_weight(100, 0) == 1.0
+    assert sample_weight(200, 800) == pytest.approx(0.5) and sample_weight(50, 800) == pytest.approx(0.25)
+    cfg = EngineConfig()
+    a = Agreement(0.4, 0.4)
+    v = Verdict(confidence=0.5 * confidence(0.4, 0.35, 0.25), score=0.4, rival_score=0.35, agreement=a, support=1.0,
+                sample_points=200, sample_weight=0.5)
+    assert refusal_message(v, cfg).endswith("; the clouds are sparse: the verdict compared only 200 points a cloud, "
+                                            "so its confidence counts sqrt(200/800) = 0.50 of the lead "
+                                            "(verdict.full_margin_points)")
+    assert "sparse" not in refusal_message(Verdict(confidence=0.1, score=0.4, rival_score=0.35, agreement=a,
+                                                   support=1.0, sample_points=900), cfg)
+
+
+@functools.cache
+def _dragon_points() -> np.ndarray:
+    return np.asarray(load_point_cloud(MODELS / "dragon.ply"), dtype=np.float64)
+
+
+def test_a_sparse_half_turn_is_refused():
+    """Two random 500-point subsets of the dragon (``data_scripts/sparse_probe.py``, tuning offset 0): the
+    search ends half-turned (163°), and its lead over the rival, 0.19 of the full margin on a 118-point
+    sample, was accepted before the sample-size weight; now it is refused, saying the clouds are sparse."""
+    source, target, T_gt = sparse_pair(_dragon_points(), 500, 0.0, 500_001)
+    res = register(source, target, EngineConfig(), seed=1)
+    assert _errors(res.transform, T_gt, source, target).rot_err_deg > 150
+    assert res.status == "failed" and res.confidence < 0.1
+    assert "the clouds are sparse: the verdict compared only 118 points a cloud" in res.message
+    # with the weight off it comes back ok: the wrong answer the weight exists for
+    off = EngineConfig().model_copy(update={"verdict": EngineConfig().verdict.model_copy(
+        update={"full_margin_points": 0})})
+    assert register(source, target, off, seed=1).status == "ok"
+
+
+def test_a_clear_sparse_answer_is_still_accepted():
+    """800-point subsets of the dragon: right, and accepted at a confidence capped by the sample size."""
+    source, target, T_gt = sparse_pair(_dragon_points(), 800, 0.0, 800_000)
+    res = register(source, target, EngineConfig(), seed=0)
+    assert res.ok, res.message
+    assert _errors(res.transform, T_gt, source, target).rot_err_deg < 1.0
+    assert 0.15 < res.confidence <= np.sqrt(353 / 800) + 1e-9
 
 
 @pytest.mark.parametrize("first_confidence, min_confidence, halves_below, support, searched",

@@ -23,6 +23,7 @@ from gctr_cli.engine.verdict import (
     Verdict,
     confidence,
     displacement,
+    sample_weight,
     shared_displacement,
     surface_agreement,
 )
@@ -219,9 +220,13 @@ def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.nda
     conf = confidence(agreement.score, rival_score, v.full_margin)
     relief = (relief_confidence(T_answer, agreement, rivals, src_ref, tgt_ref, test, cfg, height_map)
               if v.height_weight > 0 and conf < 1.0 else 0.0)
-    return T_answer, Verdict(confidence=max(conf, relief), score=agreement.score, rival_score=rival_score,
+    # a sparse cloud's sample is smaller than the threshold was calibrated on: its lead counts for less
+    n_sample = min(len(src_ref.surface.sample), len(tgt_ref.surface.sample))
+    weight = sample_weight(n_sample, v.full_margin_points)
+    return T_answer, Verdict(confidence=weight * max(conf, relief), score=agreement.score, rival_score=rival_score,
                              agreement=agreement, support=support / max(len(candidates), 1),
-                             relief_confidence=relief), shared
+                             relief_confidence=weight * relief, sample_points=n_sample,
+                             sample_weight=weight), shared
 
 
 def relief_confidence(T_answer: np.ndarray, agreement: Agreement, rivals: list[tuple[np.ndarray, Agreement]],
@@ -266,23 +271,28 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     ``AMBIGUITY_MIN_AGREEMENT`` of the two surfaces on each other), else *low confidence* with how much
     of the data the best alignment explains and by how many points of score it leads (or that it lays
     more of the clouds beside each other than on each other), and what the relief evidence gave, when it
-    gave anything (:func:`relief_confidence`). The confidence is shown truncated to two decimals, so
-    that a refused answer never reads as reaching the threshold."""
+    gave anything (:func:`relief_confidence`), and that the clouds are sparse when the verdict's samples
+    were too small for a full confidence (:func:`gctr_cli.engine.verdict.sample_weight`). The confidence
+    is shown truncated to two decimals, so that a refused answer never reads as reaching the threshold."""
     shown = _truncated(verdict.confidence)
     scores = f"score {verdict.score:.2f} vs {verdict.rival_score:.2f}"
     relief = ("" if verdict.relief_confidence <= 0 else
               f"; the relief over the target's dominant plane backs it to {_truncated(verdict.relief_confidence)}")
+    sparse = ("" if verdict.sample_weight >= 1 else
+              f"; the clouds are sparse: the verdict compared only {verdict.sample_points} points a cloud, so its "
+              f"confidence counts sqrt({verdict.sample_points}/{cfg.verdict.full_margin_points}) = "
+              f"{verdict.sample_weight:.2f} of the lead (verdict.full_margin_points)")
     explained = 0.5 * (verdict.agreement.source + verdict.agreement.target)
     lead = verdict.score - verdict.rival_score
     if (verdict.score > 0 and verdict.rival_score >= cfg.verdict.ambiguity_ratio * verdict.score
             and explained >= AMBIGUITY_MIN_AGREEMENT):
         return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
-                f"confidence {shown}, threshold {cfg.min_confidence:.2f}){relief}")
+                f"confidence {shown}, threshold {cfg.min_confidence:.2f}){relief}{sparse}")
     head = (f"low confidence {shown} (threshold {cfg.min_confidence:.2f}): the best alignment explains "
             f"{100 * explained:.0f}% of the two surfaces")
     if verdict.score <= 0:
-        return f"{head} and lays as much of them or more beside each other ({scores}){relief}"
+        return f"{head} and lays as much of them or more beside each other ({scores}){relief}{sparse}"
     points = round(100 * lead)
     margin = ("scores no more than" if points <= 0 else
               f"scores only {points} point{'' if points == 1 else 's'} more than")
-    return f"{head} and {margin} a distinct alternative ({scores}){relief}"
+    return f"{head} and {margin} a distinct alternative ({scores}){relief}{sparse}"

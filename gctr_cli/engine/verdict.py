@@ -251,6 +251,22 @@ class Verdict:
     agreement: Agreement
     support: float  # share of the independent overlap searches that ended at the answer
     relief_confidence: float = 0.0  # the confidence the relief over the target's dominant plane gives (decide)
+    sample_points: int = 0  # points in the smaller of the two samples the score was measured on (0: not known)
+    sample_weight: float = 1.0  # the factor :func:`sample_weight` applied to both confidences (1: not sparse)
+
+
+def sample_weight(n_points: int, full_points: int) -> float:
+    """The factor ``min(1, sqrt(n_points / full_points))`` by which a verdict measured on only
+    ``n_points`` sample points a cloud scales its confidence (1 when ``full_points`` is 0).
+
+    Scores are shares of sample points, so their noise grows like ``1 / sqrt(n)``: the confidence
+    threshold was calibrated on samples of ``full_points`` (``verdict.sample_points``) or more, and on
+    a cloud of a few hundred points the same lead is a fraction of the evidence. Without it, random
+    subsets of 300-800 points of the shipped models came back ``ok`` but wrong (half-turns, tens of
+    degrees off) in 10 of 144 pairs (``data_scripts/sparse_probe.py``; docs/how-it-works.md)."""
+    if full_points <= 0 or n_points >= full_points:
+        return 1.0
+    return float(np.sqrt(max(n_points, 0) / full_points))
 
 
 def confidence(score: float, rival_score: float, full_margin: float) -> float:
