@@ -24,7 +24,8 @@ help:
 	@echo "make bench-quick   the same on 26 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
 	@echo "make bench-process whole-process time of gctr register (engine + comparison methods) vs an Open3D script,"
 	@echo "                   one core -> bench/PROCESS.md"
-	@echo "make bench-sparse  sparse pairs (300-1200 points) from the shipped models -> bench/SPARSE.md (2 min)"
+	@echo "make bench-probes  pairs outside the benchmark: sparse (300-1200 points) and unrelated (wrong files paired)"
+	@echo "                   from the shipped models -> bench/SPARSE.md, bench/UNRELATED.md (4 min)"
 	@echo "make bench-data       generate the REPORT set (--seed 0, all levels) -> bench/work/data"
 	@echo "make bench-data-tune  generate the TUNING set (--seed 1, all levels) -> bench/work/data-seed1"
 	@echo "                      (tune the engine on seed 1, report on seed 0; level scene reads SHARED=$(SHARED))"
@@ -115,11 +116,13 @@ bench: setup bench-deps
 bench-quick: setup bench-deps
 	$(BIN)/python -m data_scripts.bench_compare --quick
 
-# Sparse clouds (300-1200 points, random subsets of the shipped models): bench/SPARSE.md. Offset 0 was used
-# for tuning; the report uses 50000.
-.PHONY: bench-sparse
-bench-sparse: setup
-	$(BIN)/python -m data_scripts.sparse_probe --offset 50000 -j 2 --out bench/SPARSE.md
+# Pairs outside the benchmark, from the shipped models: sparse clouds (300-1200 points) -> bench/SPARSE.md, and
+# unrelated clouds (a manifest pairing the wrong files) -> bench/UNRELATED.md. Offsets 0 and 1000 were used for
+# tuning; the reports use 50000.
+.PHONY: bench-probes
+bench-probes: setup
+	$(BIN)/python -m data_scripts.probe_pairs --kind sparse --offset 50000 -j 2 --out bench/SPARSE.md
+	$(BIN)/python -m data_scripts.probe_pairs --kind unrelated --offset 50000 -j 2 --out bench/UNRELATED.md
 
 # Whole-process time of gctr register (GCTR engine and every comparison method, -c with method: X) vs the
 # equivalent Open3D script, one core (issue 10): bench/PROCESS.md. kiss_matcher needs bench-deps.

@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from data_scripts.make_benchmark import make_lowoverlap_pair, make_part_pair, make_sfm_pair
-from data_scripts.sparse_probe import sparse_pair
+from data_scripts.probe_pairs import sparse_pair
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine import register, score_transform
 from gctr_cli.engine.halves import source_halves
@@ -470,7 +470,7 @@ def _dragon_points() -> np.ndarray:
 
 
 def test_a_sparse_half_turn_is_refused():
-    """Two random 500-point subsets of the dragon (``data_scripts/sparse_probe.py``, tuning offset 0): the
+    """Two random 500-point subsets of the dragon (``data_scripts/probe_pairs.py``, tuning offset 0): the
     search ends half-turned (163°), and its lead over the rival, 0.19 of the full margin on a 118-point
     sample, was accepted before the sample-size weight; now it is refused, saying the clouds are sparse."""
     source, target, T_gt = sparse_pair(_dragon_points(), 500, 0.0, 500_001)

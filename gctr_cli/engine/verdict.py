@@ -263,7 +263,7 @@ def sample_weight(n_points: int, full_points: int) -> float:
     threshold was calibrated on samples of ``full_points`` (``verdict.sample_points``) or more, and on
     a cloud of a few hundred points the same lead is a fraction of the evidence. Without it, random
     subsets of 300-800 points of the shipped models came back ``ok`` but wrong (half-turns, tens of
-    degrees off) in 10 of 144 pairs (``data_scripts/sparse_probe.py``; docs/how-it-works.md)."""
+    degrees off) in 10 of 144 pairs (``data_scripts/probe_pairs.py``; docs/how-it-works.md)."""
     if full_points <= 0 or n_points >= full_points:
         return 1.0
     return float(np.sqrt(max(n_points, 0) / full_points))

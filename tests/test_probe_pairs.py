@@ -1,4 +1,4 @@
-"""data_scripts.sparse_probe: sparse pairs drawn reproducibly from the shipped models, outcomes counted."""
+"""data_scripts.probe_pairs: sparse and unrelated pairs drawn reproducibly from the shipped models, outcomes counted."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from data_scripts.sparse_probe import main, sparse_pair
+from data_scripts.probe_pairs import main, sparse_pair, unrelated_pair
 from gctr_cli.geometry import apply
 
 pytestmark = pytest.mark.engine
@@ -37,3 +37,23 @@ def test_probe_counts_outcomes_per_size(tmp_path):
     text = out.read_text()
     counts = [sum(r["outcome"] == k for r in rows) for k in ("right", "silent wrong", "refused right", "refused wrong")]
     assert f"| 800 | 3 | {' | '.join(map(str, counts))} |" in text
+
+
+def test_unrelated_pair_crops_one_model_and_subsamples_the_other():
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(4000, 3)), rng.normal(size=(3000, 3)) + 10.0
+    source, target, T = unrelated_pair(a, b, 1000, 0.0, 5)
+    assert 500 <= len(source) <= 1000 and target.shape == (1000, 3)
+    assert cKDTree(a).query(apply(np.linalg.inv(T), source))[0].max() < 1e-9  # from the first model, moved
+    assert cKDTree(b).query(target)[0].max() == 0.0
+
+
+def test_unrelated_probe_counts_every_ok_as_silent_wrong(tmp_path):
+    rows_csv = tmp_path / "rows.csv"
+    assert main(["--kind", "unrelated", "--offset", "0", "--sizes", "1000", "--reps", "1", "--csv",
+                 str(rows_csv), "--out", str(tmp_path / "u.md")]) == 0
+    with open(rows_csv) as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 6 and {r["model"] for r in rows} >= {"bunny>dragon", "redkitchen>bunny"}
+    assert all(r["outcome"] == ("silent wrong" if r["status"] == "ok" else "refused wrong") for r in rows)
+    assert "| 1000 | 6 |" in (tmp_path / "u.md").read_text()
