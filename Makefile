@@ -25,7 +25,7 @@ help:
 	@echo "make bench-process whole-process time of gctr register (engine + comparison methods) vs an Open3D script,"
 	@echo "                   one core -> bench/PROCESS.md"
 	@echo "make bench-probes  pairs outside the benchmark: sparse (300-1200 points) and unrelated (wrong files paired)"
-	@echo "                   from the shipped models -> bench/SPARSE.md, bench/UNRELATED.md (4 min)"
+	@echo "                   from the shipped models -> bench/SPARSE.md, bench/UNRELATED.md (about 9 min)"
 	@echo "make bench-data       generate the REPORT set (--seed 0, all levels) -> bench/work/data"
 	@echo "make bench-data-tune  generate the TUNING set (--seed 1, all levels) -> bench/work/data-seed1"
 	@echo "                      (tune the engine on seed 1, report on seed 0; level scene reads SHARED=$(SHARED))"
