@@ -177,6 +177,10 @@ class VerdictConfig(_Strict):
         20.0, gt=0, le=90, description="final comparison: normals agree below this angle")
     full_margin: float = Field(
         0.25, gt=0, le=1, description="lead over the best distinct rival at which confidence reaches 1")
+    reverse_below: float = Field(
+        0.3, ge=0, le=1,
+        description="an answer accepted below this confidence is registered the other way round (target onto "
+                    "source) and refused unless that ends at the same alignment (within distinct_ratio); 0 = off")
     full_margin_points: int = Field(
         800, ge=0,
         description="verdict samples of fewer points (sparse clouds) need a larger lead: the confidence is "

@@ -493,6 +493,36 @@ def test_a_clear_sparse_answer_is_still_accepted():
     assert 0.15 < res.confidence <= np.sqrt(353 / 800) + 1e-9
 
 
+def _probe(kind: str, models: str, n: int, noise: float, rep: int, offset: int, reverse_below: float) -> dict:
+    """One pair of ``data_scripts/probe_pairs.py`` registered with ``verdict.reverse_below`` set."""
+    from data_scripts.probe_pairs import run_one
+    from gctr_cli.config import Config
+
+    config = Config().model_dump(mode="json")
+    config["engine"]["verdict"]["reverse_below"] = reverse_below
+    return run_one((kind, models, n, noise, rep, offset, config))
+
+
+def test_an_unconfirmed_low_confidence_answer_is_refused():
+    """A bunny subset against a dragon (a manifest pairing the wrong files; bench/UNRELATED.md): the search
+    lays one on the other at confidence 0.28, which passed the threshold; registered the other way round
+    the pair ends elsewhere, so the answer is refused."""
+    row = _probe("unrelated", "bunny>dragon", 1000, 0.002, 3, 50000, 0.3)
+    assert row["status"] == "failed" and row["confidence"] == pytest.approx(0.2785, abs=1e-3)
+    assert row["message"].startswith("not confirmed: registered the other way round (target onto source), the "
+                                     "pair ends at another alignment (")
+    assert "at confidence 0.27, below verdict.reverse_below 0.30, an answer needs that confirmation" in row["message"]
+    assert _probe("unrelated", "bunny>dragon", 1000, 0.002, 3, 50000, 0.0)["outcome"] == "silent wrong"
+
+
+def test_a_right_low_confidence_answer_is_confirmed():
+    """A sparse dragon pair (500 points each) right at confidence 0.18: the reverse run ends at the same
+    alignment, so it stays ok."""
+    row = _probe("sparse", "dragon", 500, 0.0, 0, 0, 0.3)
+    assert row["status"] == "ok" and row["outcome"] == "right" and 0.15 < row["confidence"] < 0.3
+    assert row["rot_err_deg"] < 5
+
+
 @pytest.mark.parametrize("first_confidence, min_confidence, halves_below, support, searched",
                          [(0.37, 0.4, 0.35, 1.0, True),   # would be refused: the halves run though 0.37 > 0.35
                           (0.37, 0.2, 0.35, 1.0, False),  # accepted and above source_halves_below

@@ -113,7 +113,7 @@ BOUND_TOLERANCE = 0.005
 
 def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Config | None = None, seed: int = 0, *,
              source_normals: np.ndarray | None = None,
-             target_normals: np.ndarray | None = None) -> RegistrationResult:
+             target_normals: np.ndarray | None = None, _confirm: bool = True) -> RegistrationResult:
     """Estimate the similarity mapping ``source`` (N, 3) onto ``target`` (M, 3).
 
     ``config`` is the engine section (``load_config(...).engine``) or the whole loaded config (its
@@ -200,6 +200,16 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
         status, message = "failed", (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds "
                                      f"[{lo}, {hi}]: refined without it, the alignment moves to scale {free:.4g} "
                                      "(widen scale_bounds)")
+    if status == "ok" and _confirm and verdict.confidence < cfg.verdict.reverse_below:
+        t = time.perf_counter()
+        moved = reverse_displacement(source, target, cfg, seed, T_n, ns, nt, src.surface.sample)
+        timer.add("verdict", t)
+        if not moved <= cfg.verdict.distinct_ratio:
+            status, message = "failed", (
+                f"not confirmed: registered the other way round (target onto source), the pair ends at another "
+                f"alignment ({moved:.2f} of the target's size away); at confidence "
+                f"{np.floor(verdict.confidence * 100) / 100:.2f}, below verdict.reverse_below "
+                f"{cfg.verdict.reverse_below:.2f}, an answer needs that confirmation")
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
@@ -247,6 +257,18 @@ def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, Refineme
     if tight_agreement(T_free, src_ref, tgt_ref, test).score >= tight_agreement(T_n, src_ref, tgt_ref, test).score:
         return T_free, "", free
     return T_n, "", free
+
+
+def reverse_displacement(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, T_n: np.ndarray,
+                         ns: NormalisedCloud, nt: NormalisedCloud, sample: np.ndarray) -> float:
+    """How far the pair registered the other way round (target onto source, same config and seed), inverted,
+    moves the normalised source ``sample`` from the answer ``T_n``: RMS, in normalised target units (inf when
+    the reverse run returns no invertible transform). A low-confidence answer that is right is usually found
+    from both sides; a coincidental fit of unrelated clouds (a manifest pairing the wrong files) rarely is."""
+    back = register(target, source, cfg, seed, _confirm=False).transform
+    if not (np.all(np.isfinite(back)) and abs(np.linalg.det(back[:3, :3])) > 1e-12):
+        return float("inf")
+    return displacement(T_n, _normalised(np.linalg.inv(back), ns, nt), sample)
 
 
 def _check_seed(seed: object) -> None:
