@@ -244,6 +244,10 @@ def confidence_sweep(rows: list[dict], thresholds=CONFIDENCE_THRESHOLDS) -> list
     * ``silent_wrong``: accepted and wrong (``would_succeed`` False);
     * ``correct_refused``: refused although the transform was right (``would_succeed`` True, ``conf < t``);
     * ``success``: accepted and right; ``refused``: all the refused pairs; ``pairs``: all pairs.
+
+    A pair the engine refused because the reverse registration did not confirm it (message ``not
+    confirmed: ...``) counts as refused at every threshold: below ``verdict.reverse_below`` the check
+    refuses it, and above its confidence the threshold does.
     """
     out = []
     for t in thresholds:
@@ -252,7 +256,8 @@ def confidence_sweep(rows: list[dict], thresholds=CONFIDENCE_THRESHOLDS) -> list
         for r in rows:
             ws = r.get("would_succeed")
             conf = r.get("confidence", math.nan)
-            accepted = ws is not None and (_is_nan(conf) or conf >= t)
+            unconfirmed = str(r.get("message") or "").startswith("not confirmed")
+            accepted = ws is not None and not unconfirmed and (_is_nan(conf) or conf >= t)
             if not accepted:
                 c["refused"] += 1
                 c["correct_refused"] += int(ws is True)

@@ -124,7 +124,7 @@ def report(rows: list[dict[str, Any]], title: str, provenance: list[str], thresh
         lines.append(f"| {n} | {len(sel)} | " + " | ".join(str(sum(r['outcome'] == k for r in sel)) for k in kinds)
                      + " |")
     # the trade-off offline: a pair refused for another reason than its confidence counts as refused
-    swept = [{"would_succeed": r["outcome"] in ("right", "refused right"),
+    swept = [{"would_succeed": r["outcome"] in ("right", "refused right"), "message": r["message"],
               "confidence": r["confidence"] if r["status"] == "ok" or "confidence" in r["message"] else 0.0}
              for r in rows]
     lines += ["", "Confidence threshold (all pairs; the configured one marked):", "",

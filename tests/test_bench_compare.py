@@ -192,6 +192,16 @@ def test_confidence_sweep_counts():
     assert {(c["silent_wrong"], c["correct_refused"]) for c in common.confidence_sweep(nan_rows)} == {(2, 0)}
 
 
+def test_confidence_sweep_counts_an_unconfirmed_answer_as_refused_at_every_threshold():
+    """A right answer at confidence 0.21 that the reverse registration did not confirm was refused: the
+    configured row must say so, and so must every lower threshold."""
+    rows = [{"would_succeed": True, "confidence": 0.21, "status": "failed",
+             "message": "not confirmed: registered the other way round (target onto source), ..."},
+            {"would_succeed": True, "confidence": 0.21, "status": "ok", "message": ""}]
+    for c in common.confidence_sweep(rows, (0.0, 0.15, 0.3)):
+        assert c["correct_refused"] == (1 if c["threshold"] < 0.21 else 2)
+
+
 def test_sweep_table_marks_configured_threshold():
     sweeps = {"gctr": common.confidence_sweep(_verdict_rows()),
               "icp": common.confidence_sweep([{**r, "confidence": NAN} for r in _verdict_rows()])}
