@@ -29,6 +29,7 @@ diagonal, scale within 5%). The report counts, per size: right and accepted, acc
 from __future__ import annotations
 
 import argparse
+import functools
 import multiprocessing
 import sys
 import time
@@ -44,20 +45,34 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 MODELS = ("bunny", "dragon", "redkitchen")
 
 
+def _diagonal(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points.max(0) - points.min(0)))
+
+
+def _noisy_and_similarity(rng: np.random.Generator, a: np.ndarray, b: np.ndarray, noise_a: float,
+                          noise_b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``a`` and ``b`` with Gaussian noise of the given standard deviations, and a random similarity
+    (scale 0.5-2, any rotation, a unit-normal shift), drawn from ``rng`` in that order."""
+    from scipy.spatial.transform import Rotation
+
+    from gctr_cli.geometry import to_matrix
+
+    a = a + rng.normal(0.0, noise_a, a.shape)
+    b = b + rng.normal(0.0, noise_b, b.shape)
+    T = to_matrix(float(rng.uniform(0.5, 2.0)), Rotation.random(random_state=rng).as_matrix(), rng.normal(0, 1, 3))
+    return a, b, T
+
+
 def sparse_pair(model_points: np.ndarray, n: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(source, target, true source->target similarity): two random ``n``-point subsets of the model with
     Gaussian noise of ``noise`` x its bounding-box diagonal, the source moved by a random similarity."""
-    from scipy.spatial.transform import Rotation
-
-    from gctr_cli.geometry import apply, to_matrix
+    from gctr_cli.geometry import apply
 
     rng = np.random.default_rng(seed)
-    diagonal = float(np.linalg.norm(model_points.max(0) - model_points.min(0)))
+    sigma = noise * _diagonal(model_points)
     a = model_points[rng.choice(len(model_points), n, replace=False)]
     b = model_points[rng.choice(len(model_points), n, replace=False)]
-    a = a + rng.normal(0.0, noise * diagonal, a.shape)
-    b = b + rng.normal(0.0, noise * diagonal, b.shape)
-    T = to_matrix(float(rng.uniform(0.5, 2.0)), Rotation.random(random_state=rng).as_matrix(), rng.normal(0, 1, 3))
+    a, b, T = _noisy_and_similarity(rng, a, b, sigma, sigma)
     return apply(np.linalg.inv(T), a), b, T
 
 
@@ -66,22 +81,20 @@ def unrelated_pair(source_model: np.ndarray, target_model: np.ndarray, n: int, n
     """(source, target, the similarity the source was moved by): a random ``n``-point subset of
     ``source_model`` cropped to a ball holding 50-100% of it, and a random ``n``-point subset of another
     model; noise as in :func:`sparse_pair`. No transform aligns them."""
-    from scipy.spatial.transform import Rotation
-
-    from gctr_cli.geometry import apply, to_matrix
+    from gctr_cli.geometry import apply
 
     rng = np.random.default_rng(seed)
     a = source_model[rng.choice(len(source_model), min(n, len(source_model)), replace=False)]
     distance = np.linalg.norm(a - a[rng.integers(len(a))], axis=1)
     a = a[distance <= np.quantile(distance, rng.uniform(0.5, 1.0))]
     b = target_model[rng.choice(len(target_model), min(n, len(target_model)), replace=False)]
-    for cloud, model in ((a, source_model), (b, target_model)):
-        cloud += rng.normal(0.0, noise * float(np.linalg.norm(model.max(0) - model.min(0))), cloud.shape)
-    T = to_matrix(float(rng.uniform(0.5, 2.0)), Rotation.random(random_state=rng).as_matrix(), rng.normal(0, 1, 3))
+    a, b, T = _noisy_and_similarity(rng, a, b, noise * _diagonal(source_model), noise * _diagonal(target_model))
     return apply(T, a), b, T
 
 
+@functools.cache
 def _model(name: str) -> np.ndarray:
+    """A shipped model's points (read once per worker process, not once per pair)."""
     from gctr_cli.io import load_point_cloud
 
     return np.asarray(load_point_cloud(REPO_ROOT / "data" / "models" / f"{name}.ply"), dtype=np.float64)

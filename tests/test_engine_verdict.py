@@ -515,6 +515,28 @@ def test_an_unconfirmed_low_confidence_answer_is_refused():
     assert _probe("unrelated", "bunny>dragon", 1000, 0.002, 3, 50000, 0.0)["outcome"] == "silent wrong"
 
 
+@pytest.mark.parametrize("bounds", [(0.1, 10.0), (1.2, 3.0), (1.0, float("inf"))])
+def test_the_reverse_run_inverts_the_scale_bounds(bounds):
+    """scale_bounds hold the source->target scale; the reverse run (target onto source) must get them
+    inverted, or a right answer at scale 1.5 within [1.2, 3] is held at 1.2 backwards and 'not confirmed'."""
+    from gctr_cli.engine.gctr import _normalised, _prepared_pair, reverse_displacement
+    from gctr_cli.engine.prepare import StageTimer
+
+    rng = np.random.default_rng(0)
+    pts = np.asarray(load_point_cloud(MODELS / "bunny.ply"), dtype=np.float64)
+    src = pts[rng.choice(len(pts), 4000, replace=False)]
+    T = np.eye(4)
+    T[:3, :3] = 1.5 * Rotation.from_euler("xyz", [20, 40, 60], degrees=True).as_matrix()
+    T[:3, 3] = [0.1, 0.2, 0.3]
+    tgt = apply(T, pts[rng.choice(len(pts), 4000, replace=False)])
+    cfg = EngineConfig().model_copy(update={"scale_bounds": bounds})
+    res = register(src, tgt, cfg, seed=0)
+    assert res.ok and abs(res.scale - 1.5) < 0.005
+    ns, nt, *_ = _prepared_pair(src, tgt, cfg, 0, StageTimer({}))
+    moved = reverse_displacement(src, tgt, cfg, 0, _normalised(res.transform, ns, nt), ns, nt, ns.points[::20])
+    assert moved < 0.01  # the same alignment from the other side (0.54-0.65 with the bounds as given)
+
+
 def test_a_right_low_confidence_answer_is_confirmed():
     """A sparse dragon pair (500 points each) right at confidence 0.18: the reverse run ends at the same
     alignment, so it stays ok."""

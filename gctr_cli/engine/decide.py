@@ -259,7 +259,7 @@ def target_heights(tgt_ref: RefinementCloud, test: TightTest, cfg: EngineConfig)
                            v.height_tolerance_ratio)
 
 
-def _truncated(value: float) -> str:
+def truncated(value: float) -> str:
     """``value`` with two decimals, truncated (not rounded): a confidence just below a threshold never
     reads as reaching it."""
     return f"{np.floor(value * 100) / 100:.2f}"
@@ -274,10 +274,10 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     gave anything (:func:`relief_confidence`), and that the clouds are sparse when the verdict's samples
     were too small for a full confidence (:func:`gctr_cli.engine.verdict.sample_weight`). The confidence
     is shown truncated to two decimals, so that a refused answer never reads as reaching the threshold."""
-    shown = _truncated(verdict.confidence)
+    shown = truncated(verdict.confidence)
     scores = f"score {verdict.score:.2f} vs {verdict.rival_score:.2f}"
     relief = ("" if verdict.relief_confidence <= 0 else
-              f"; the relief over the target's dominant plane backs it to {_truncated(verdict.relief_confidence)}")
+              f"; the relief over the target's dominant plane backs it to {truncated(verdict.relief_confidence)}")
     sparse = ("" if verdict.sample_weight >= 1 else
               f"; the clouds are sparse: the verdict compared only {verdict.sample_points} points a cloud, so its "
               f"confidence counts sqrt({verdict.sample_points}/{cfg.verdict.full_margin_points}) = "

@@ -48,7 +48,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.config import Config, EngineConfig
-from gctr_cli.engine.decide import decide, icp, refusal_message, similarity_scale, tight_agreement, tight_test
+from gctr_cli.engine.decide import (
+    decide,
+    icp,
+    refusal_message,
+    similarity_scale,
+    tight_agreement,
+    tight_test,
+    truncated,
+)
 from gctr_cli.engine.halves import half_candidates
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, prepare_cloud
 from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, normalise, validate_cloud
@@ -208,7 +216,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
             status, message = "failed", (
                 f"not confirmed: registered the other way round (target onto source), the pair ends at another "
                 f"alignment ({moved:.2f} of the target's size away); at confidence "
-                f"{np.floor(verdict.confidence * 100) / 100:.2f}, below verdict.reverse_below "
+                f"{truncated(verdict.confidence)}, below verdict.reverse_below "
                 f"{cfg.verdict.reverse_below:.2f}, an answer needs that confirmation")
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
@@ -264,8 +272,13 @@ def reverse_displacement(source: np.ndarray, target: np.ndarray, cfg: EngineConf
     """How far the pair registered the other way round (target onto source, same config and seed), inverted,
     moves the normalised source ``sample`` from the answer ``T_n``: RMS, in normalised target units (inf when
     the reverse run returns no invertible transform). A low-confidence answer that is right is usually found
-    from both sides; a coincidental fit of unrelated clouds (a manifest pairing the wrong files) rarely is."""
-    back = register(target, source, cfg, seed, _confirm=False).transform
+    from both sides; a coincidental fit of unrelated clouds (a manifest pairing the wrong files) rarely is.
+    ``scale_bounds`` hold the source->target scale, so the reverse run gets them inverted (with ``[1.2, 3]``
+    as given, it was held at 1.2 and ended half the target's size away from a right answer)."""
+    lo, hi = cfg.scale_bounds
+    # not re-validated: 1 / inf = 0 is a valid lower bound for the engine, though not for a config file
+    inverted = cfg.model_copy(update={"scale_bounds": (1.0 / hi, 1.0 / lo)})
+    back = register(target, source, inverted, seed, _confirm=False).transform
     if not (np.all(np.isfinite(back)) and abs(np.linalg.det(back[:3, :3])) > 1e-12):
         return float("inf")
     return displacement(T_n, _normalised(np.linalg.inv(back), ns, nt), sample)
