@@ -24,8 +24,9 @@ help:
 	@echo "make bench-quick   the same on 26 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
 	@echo "make bench-process whole-process time of gctr register (engine + comparison methods) vs an Open3D script,"
 	@echo "                   one core -> bench/PROCESS.md"
-	@echo "make bench-probes  pairs outside the benchmark: sparse (300-1200 points) and unrelated (wrong files paired)"
-	@echo "                   from the shipped models -> bench/SPARSE.md, bench/UNRELATED.md (about 9 min)"
+	@echo "make bench-probes  pairs outside the benchmark: sparse (300-1200 points), unrelated (wrong files paired) and"
+	@echo "                   mirrored (a flipped axis) from the shipped models -> bench/SPARSE.md, bench/UNRELATED.md,"
+	@echo "                   bench/MIRRORED.md (about 13 min)"
 	@echo "make bench-data       generate the REPORT set (--seed 0, all levels) -> bench/work/data"
 	@echo "make bench-data-tune  generate the TUNING set (--seed 1, all levels) -> bench/work/data-seed1"
 	@echo "                      (tune the engine on seed 1, report on seed 0; level scene reads SHARED=$(SHARED))"
@@ -123,6 +124,7 @@ bench-quick: setup bench-deps
 bench-probes: setup
 	$(BIN)/python -m data_scripts.probe_pairs --kind sparse --offset 50000 -j 2 --out bench/SPARSE.md
 	$(BIN)/python -m data_scripts.probe_pairs --kind unrelated --offset 50000 -j 2 --out bench/UNRELATED.md
+	$(BIN)/python -m data_scripts.probe_pairs --kind mirrored --offset 50000 --reps 4 -j 2 --out bench/MIRRORED.md
 
 # Whole-process time of gctr register (GCTR engine and every comparison method, -c with method: X) vs the
 # equivalent Open3D script, one core (issue 10): bench/PROCESS.md. kiss_matcher needs bench-deps.

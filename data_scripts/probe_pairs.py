@@ -8,7 +8,11 @@ models (``data/models``: bunny, dragon, redkitchen):
   and its verdict samples 800 points a cloud);
 * ``unrelated``: a random ``n``-point subset of one model, cropped to a ball holding 50-100% of it,
   against a random ``n``-point subset of *another* model — a manifest that pairs the wrong files.
-  Every answer is wrong, so every ``ok`` is a silent wrong answer.
+  Every answer is wrong, so every ``ok`` is a silent wrong answer;
+* ``mirrored``: a random ``n``-point subset of one model, cropped the same way and reflected through a
+  random plane (a cloud exported with a flipped axis, from a left-handed coordinate system), against
+  another ``n``-point subset of the same model. No rotation aligns a mirror image, so every ``ok`` is
+  a silent wrong answer too.
 
 Both clouds get Gaussian noise (a share of the model's bounding-box diagonal), and the source is moved
 by a random similarity (scale 0.5-2). Everything is drawn from ``--offset``, the kind, the models, the
@@ -20,6 +24,7 @@ Usage::
     python -m data_scripts.probe_pairs --kind sparse --offset 50000 --sizes 300,500,800,1200 --reps 8 \\
         --noise 0,0.002 -j 2 [--set engine.min_confidence=0.2] [--csv rows.csv]
     python -m data_scripts.probe_pairs --kind unrelated --offset 50000 --sizes 1000,2000 --reps 8 -j 2
+    python -m data_scripts.probe_pairs --kind mirrored --offset 50000 --sizes 2000,8000 --reps 4 -j 2
 
 A pair is right when it meets the benchmark's criterion (rotation < 5°, translation < 5% of the target
 diagonal, scale within 5%). The report counts, per size: right and accepted, accepted but wrong
@@ -92,6 +97,27 @@ def unrelated_pair(source_model: np.ndarray, target_model: np.ndarray, n: int, n
     return apply(T, a), b, T
 
 
+def mirrored_pair(model_points: np.ndarray, n: int, noise: float,
+                  seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(source, target, the similarity the source was moved by): a random ``n``-point subset of the model
+    cropped to a ball holding 50-100% of it and *reflected* through a random plane (a cloud from a
+    left-handed coordinate system, a flipped axis), against another ``n``-point subset of the same model;
+    noise as in :func:`sparse_pair`. No similarity (a proper rotation) aligns them."""
+    from gctr_cli.geometry import apply
+
+    rng = np.random.default_rng(seed)
+    a = model_points[rng.choice(len(model_points), min(n, len(model_points)), replace=False)]
+    distance = np.linalg.norm(a - a[rng.integers(len(a))], axis=1)
+    a = a[distance <= np.quantile(distance, rng.uniform(0.5, 1.0))]
+    normal = rng.normal(size=3)
+    normal /= np.linalg.norm(normal)
+    a = a - 2.0 * np.outer((a - a.mean(axis=0)) @ normal, normal)
+    b = model_points[rng.choice(len(model_points), min(n, len(model_points)), replace=False)]
+    sigma = noise * _diagonal(model_points)
+    a, b, T = _noisy_and_similarity(rng, a, b, sigma, sigma)
+    return apply(T, a), b, T
+
+
 @functools.cache
 def _model(name: str) -> np.ndarray:
     """A shipped model's points (read once per worker process, not once per pair)."""
@@ -109,6 +135,8 @@ def run_one(task: tuple[str, str, int, float, int, int, dict[str, Any]]) -> dict
     kind, models, n, noise, rep, offset, config = task
     if kind == "sparse":
         source, target, T = sparse_pair(_model(models), n, noise, offset + 1000 * n + rep)
+    elif kind == "mirrored":
+        source, target, T = mirrored_pair(_model(models), n, noise, offset + 1000 * n + rep + 200_000)
     else:
         a, b = models.split(">")
         pair_index = 3 * MODELS.index(a) + MODELS.index(b)
@@ -120,8 +148,11 @@ def run_one(task: tuple[str, str, int, float, int, int, dict[str, Any]]) -> dict
     right = kind == "sparse" and err.success(5.0, 0.05, 0.05)
     outcome = ("right" if right else "silent wrong") if result.status == "ok" else (
         "refused right" if right else "refused wrong")
+    evidence = result.evidence or {}
     return {"kind": kind, "model": models, "n": n, "noise": noise, "rep": rep, "status": result.status,
             "outcome": outcome, "confidence": round(result.confidence, 4),
+            "score": round(evidence.get("score", float("nan")), 4),
+            "mirror_score": round(evidence.get("mirror_score", float("nan")), 4),
             "rot_err_deg": round(err.rot_err_deg, 3) if kind == "sparse" else "",
             "scale_err": round(err.scale_err, 5) if kind == "sparse" else "", "message": result.message}
 
@@ -153,15 +184,16 @@ def report(rows: list[dict[str, Any]], title: str, provenance: list[str], thresh
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--kind", choices=("sparse", "unrelated"), default="sparse",
-                   help="sparse: two subsets of one model; unrelated: subsets of two different models")
+    p.add_argument("--kind", choices=("sparse", "unrelated", "mirrored"), default="sparse",
+                   help="sparse: two subsets of one model; unrelated: subsets of two different models; mirrored: "
+                        "a reflected subset of one model against another subset of it")
     p.add_argument("--offset", type=int, required=True,
                    help="seed offset of the draws (0, and 1000 for unrelated pairs, were used for tuning)")
     p.add_argument("--sizes", help="points per cloud, comma-separated (default: sparse 300,500,800,1200; "
-                                   "unrelated 1000,2000)")
+                                   "unrelated 1000,2000; mirrored 2000,8000)")
     p.add_argument("--reps", type=int, default=8, help="pairs per model (pair), size and noise level")
     p.add_argument("--noise", help="noise levels, share of the model's diagonal (default: sparse 0,0.002; "
-                                   "unrelated 0.002)")
+                                   "unrelated and mirrored 0.002)")
     p.add_argument("-j", "--jobs", type=int, default=1, help="pairs in parallel")
     p.add_argument("-c", "--config", type=Path, help="config file (default: the built-in defaults)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -173,9 +205,9 @@ def main(argv: list[str] | None = None) -> int:
         _, config = resolve_config(args.config, args.overrides)
     except BenchError as err:
         p.error(str(err))
-    sizes = args.sizes or ("300,500,800,1200" if args.kind == "sparse" else "1000,2000")
+    sizes = args.sizes or {"sparse": "300,500,800,1200", "unrelated": "1000,2000", "mirrored": "2000,8000"}[args.kind]
     noises = args.noise or ("0,0.002" if args.kind == "sparse" else "0.002")
-    models = list(MODELS) if args.kind == "sparse" else [f"{a}>{b}" for a in MODELS for b in MODELS if a != b]
+    models = [f"{a}>{b}" for a in MODELS for b in MODELS if a != b] if args.kind == "unrelated" else list(MODELS)
     tasks = [(args.kind, m, int(n), float(z), rep, args.offset, config) for m in models for n in sizes.split(",")
              for z in noises.split(",") for rep in range(args.reps)]
     with multiprocessing.get_context("spawn").Pool(max(args.jobs, 1)) as pool:
@@ -183,8 +215,10 @@ def main(argv: list[str] | None = None) -> int:
     title = (f"{args.kind}, offset {args.offset}, noise {noises}"
              + (f", {' '.join(args.overrides)}" if args.overrides else ""))
     command = "python -m data_scripts.probe_pairs " + " ".join(argv if argv is not None else sys.argv[1:])
-    what = ("two subsets of one model" if args.kind == "sparse" else
-            "a cropped subset of one model against a subset of another: every ok is wrong")
+    what = {"sparse": "two subsets of one model",
+            "unrelated": "a cropped subset of one model against a subset of another: every ok is wrong",
+            "mirrored": "a cropped, reflected subset of one model against another subset of it: every ok is wrong"
+            }[args.kind]
     provenance = [f"- Date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}", f"- Command: `{command}`",
                   f"- Code: {code_state()}",
                   f"- Pairs: {len(rows)}, {what} ({', '.join(models)}; sizes {sizes}; {args.reps} per model, size "

@@ -493,14 +493,39 @@ def test_a_clear_sparse_answer_is_still_accepted():
     assert 0.15 < res.confidence <= np.sqrt(353 / 800) + 1e-9
 
 
-def _probe(kind: str, models: str, n: int, noise: float, rep: int, offset: int, reverse_below: float) -> dict:
-    """One pair of ``data_scripts/probe_pairs.py`` registered with ``verdict.reverse_below`` set."""
+def _probe(kind: str, models: str, n: int, noise: float, rep: int, offset: int, reverse_below: float = 0.3,
+           **verdict: float) -> dict:
+    """One pair of ``data_scripts/probe_pairs.py`` registered with ``verdict.reverse_below`` and any other
+    ``verdict`` keys set."""
     from data_scripts.probe_pairs import run_one
     from gctr_cli.config import Config
 
     config = Config().model_dump(mode="json")
-    config["engine"]["verdict"]["reverse_below"] = reverse_below
+    config["engine"]["verdict"].update(reverse_below=reverse_below, **verdict)
     return run_one((kind, models, n, noise, rep, offset, config))
+
+
+def test_a_mirrored_cloud_is_refused():
+    """A dragon crop reflected through a plane (a cloud with a flipped axis, ``probe_pairs --kind mirrored``,
+    tuning offset 0): the best rotation lays it on the dragon at confidence 0.55, a silent wrong answer
+    without the mirror check; the mirror image fits far better (score 0.52 against 0.14), so it is refused."""
+    row = _probe("mirrored", "dragon", 2000, 0.002, 0, 0)
+    assert row["status"] == "failed" and row["confidence"] == pytest.approx(0.5543, abs=2e-3)
+    assert row["score"] == pytest.approx(0.139, abs=2e-3) and row["mirror_score"] == pytest.approx(0.519, abs=2e-3)
+    assert row["message"] == ("mirrored: the source reflected (x -> -x) fits the target better than any rotation of "
+                              "it (score 0.52 against 0.14); one of the clouds has a flipped axis (a left-handed "
+                              "coordinate system?): flip it and register again")
+    assert _probe("mirrored", "dragon", 2000, 0.002, 0, 0, mirror_below=0.0)["outcome"] == "silent wrong"
+
+
+def test_the_mirror_check_keeps_a_right_answer_of_a_nearly_symmetric_shape():
+    """The bunny is nearly mirror-symmetric: a right answer on a low-overlap bunny pair is checked (its score
+    is below mirror_below), and its mirror image scores below it or within mirror_margin, so it stays ok."""
+    pair = make_lowoverlap_pair(_model("bunny"), np.random.default_rng([7, 7]), n_source=8000)
+    res = register(pair.source, pair.target, EngineConfig(), seed=0)
+    _assert_correct(res, pair.T_gt, pair.source, pair.target)
+    assert res.evidence["score"] < EngineConfig().verdict.mirror_below
+    assert res.evidence["mirror_score"] - res.evidence["score"] < EngineConfig().verdict.mirror_margin
 
 
 def test_an_unconfirmed_low_confidence_answer_is_refused():

@@ -1,4 +1,4 @@
-"""data_scripts.probe_pairs: sparse and unrelated pairs drawn reproducibly from the shipped models, outcomes counted."""
+"""data_scripts.probe_pairs: sparse, unrelated and mirrored pairs drawn reproducibly from the shipped models."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from data_scripts.probe_pairs import main, sparse_pair, unrelated_pair
+from data_scripts.probe_pairs import main, mirrored_pair, sparse_pair, unrelated_pair
 from gctr_cli.geometry import apply
 
 pytestmark = pytest.mark.engine
@@ -57,3 +57,21 @@ def test_unrelated_probe_counts_every_ok_as_silent_wrong(tmp_path):
     assert len(rows) == 6 and {r["model"] for r in rows} >= {"bunny>dragon", "redkitchen>bunny"}
     assert all(r["outcome"] == ("silent wrong" if r["status"] == "ok" else "refused wrong") for r in rows)
     assert "| 1000 | 6 |" in (tmp_path / "u.md").read_text()
+
+
+def test_mirrored_pair_is_a_reflection_of_a_crop_of_the_model():
+    """Moved back by the similarity, the source is its crop of the model reflected through a plane: the linear
+    map between the two is orthogonal with determinant -1 (no rotation aligns them)."""
+    rng = np.random.default_rng(2)
+    model = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0]
+    source, target, T = mirrored_pair(model, 2000, 0.0, 9)
+    assert 1000 <= len(source) <= 2000 and target.shape == (2000, 3)
+    assert cKDTree(model).query(target)[0].max() == 0.0
+    draw = np.random.default_rng(9)  # the crop, drawn as mirrored_pair draws it (subset, then ball)
+    crop = model[draw.choice(len(model), 2000, replace=False)]
+    distance = np.linalg.norm(crop - crop[draw.integers(len(crop))], axis=1)
+    crop = crop[distance <= np.quantile(distance, draw.uniform(0.5, 1.0))]
+    back = apply(np.linalg.inv(T), source)
+    M, *_ = np.linalg.lstsq(crop - crop.mean(0), back - back.mean(0), rcond=None)
+    assert np.allclose(M.T @ M, np.eye(3), atol=1e-9) and np.linalg.det(M) == pytest.approx(-1.0)
+    assert np.allclose(back, (crop - crop.mean(0)) @ M + back.mean(0), atol=1e-9)

@@ -113,6 +113,9 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine)
 
 
+#: the reflection the mirror check applies to the source (any reflection is this one up to a rotation)
+MIRROR = np.array([-1.0, 1.0, 1.0])
+
 #: an answer within this factor of a finite ``scale_bounds`` end is checked by :func:`settle_at_bound`
 NEAR_BOUND = 1.25
 #: how far beyond a bound the unbounded refinement may end before the answer counts as held there
@@ -218,6 +221,21 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
                 f"alignment ({moved:.2f} of the target's size away); at confidence "
                 f"{truncated(verdict.confidence)}, below verdict.reverse_below "
                 f"{cfg.verdict.reverse_below:.2f}, an answer needs that confirmation")
+    mirror: dict[str, float] = {}
+    if status == "ok" and _confirm and verdict.score < cfg.verdict.mirror_below:
+        # A mirror image (a cloud with a flipped axis) has no right rotation, but the best one can stand out
+        # among the other poor ones (confidence 1 on a mirrored bunny): is the source's reflection a better fit?
+        t = time.perf_counter()
+        mirrored = register(np.asarray(source, dtype=float) * MIRROR, target, mirror_config(cfg, best.overlap), seed,
+                            _confirm=False)
+        timer.add("verdict", t)
+        mirror = {"mirror_score": mirrored.evidence.get("score", float("nan")),
+                  "mirror_confidence": mirrored.confidence, "mirror_ok": float(mirrored.status == "ok")}
+        if mirrored.status == "ok" and mirror["mirror_score"] - verdict.score >= cfg.verdict.mirror_margin:
+            status, message = "failed", (
+                f"mirrored: the source reflected (x -> -x) fits the target better than any rotation of it (score "
+                f"{mirror['mirror_score']:.2f} against {verdict.score:.2f}); one of the clouds has a flipped axis "
+                "(a left-handed coordinate system?): flip it and register again")
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
@@ -227,7 +245,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
                   "source_agreement": verdict.agreement.source, "target_agreement": verdict.agreement.target,
                   "source_conflict": verdict.agreement.conflict_source,
                   "target_conflict": verdict.agreement.conflict_target, "support": verdict.support,
-                  "relief_confidence": verdict.relief_confidence},
+                  "relief_confidence": verdict.relief_confidence, **mirror},
     )
 
 
@@ -265,6 +283,22 @@ def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, Refineme
     if tight_agreement(T_free, src_ref, tgt_ref, test).score >= tight_agreement(T_n, src_ref, tgt_ref, test).score:
         return T_free, "", free
     return T_n, "", free
+
+
+def mirror_config(cfg: EngineConfig, overlap: float) -> EngineConfig:
+    """The config of the mirror check's run, a lighter search: only the answer's overlap hypothesis when it
+    was one of ``overlap_candidates`` (a mirror image is found where the answer was), one round of the outer
+    loop, no search from the source's halves, two refined finalists and no slides. On the mirrored probe
+    pairs it finds the same mirror images as the full search (scores within 0.02); the full search cost 4-5
+    times the answer's time, this one about as much as the answer on a clean 20k-point pair (0.3 s)."""
+    update: dict[str, object] = {
+        "source_halves_below": 0.0,
+        "outer": cfg.outer.model_copy(update={"max_iterations": 1}),
+        "verdict": cfg.verdict.model_copy(update={"refined_finalists": 2, "slide_steps": ()}),
+    }
+    if cfg.overlap == "auto" and any(abs(overlap - r) < 1e-9 for r in cfg.overlap_candidates):
+        update["overlap"] = overlap
+    return cfg.model_copy(update=update)
 
 
 def reverse_displacement(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, T_n: np.ndarray,
