@@ -182,7 +182,7 @@ class VerdictConfig(_Strict):
         description="an answer accepted below this confidence is registered the other way round (target onto "
                     "source) and refused unless that ends at the same alignment (within distinct_ratio); 0 = off")
     mirror_below: float = Field(
-        0.5, ge=0, le=1,
+        0.3, ge=0, le=1,
         description="an accepted answer whose score (the verdict's surface agreement) is below this is also "
                     "registered with the source mirrored, and refused when the mirror image fits clearly better "
                     "(mirror_margin): the clouds' axis conventions differ (a flipped axis); 0 = off")
