@@ -34,7 +34,9 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    slid both ways along the direction its surface contact leaves free, refined, and the choice made again);
 6. the transform is composed back into the original coordinates and checked (inliers, fitness,
    scale bounds, confidence ≥ ``min_confidence``) — weak or ambiguous evidence gives
-   ``status='failed'`` with a message rather than a silently wrong matrix.
+   ``status='failed'`` with a message rather than a silently wrong matrix; an answer below
+   ``verdict.reverse_below`` must be found again target onto source, and one scoring below
+   ``verdict.mirror_below`` must fit better than the source's mirror image (:func:`mirror_config`).
 
 Stages 1-2 for each cloud are in :mod:`~gctr_cli.engine.prepare`. All random draws come from
 generators spawned from ``seed``.
