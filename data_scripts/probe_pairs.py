@@ -81,6 +81,14 @@ def sparse_pair(model_points: np.ndarray, n: int, noise: float, seed: int) -> tu
     return apply(np.linalg.inv(T), a), b, T
 
 
+def _cropped_subset(rng: np.random.Generator, points: np.ndarray, n: int) -> np.ndarray:
+    """A random ``n``-point subset of ``points`` cropped to a ball (round one of its points) holding 50-100%
+    of it, drawn from ``rng`` in that order."""
+    a = points[rng.choice(len(points), min(n, len(points)), replace=False)]
+    distance = np.linalg.norm(a - a[rng.integers(len(a))], axis=1)
+    return a[distance <= np.quantile(distance, rng.uniform(0.5, 1.0))]
+
+
 def unrelated_pair(source_model: np.ndarray, target_model: np.ndarray, n: int, noise: float,
                    seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(source, target, the similarity the source was moved by): a random ``n``-point subset of
@@ -89,9 +97,7 @@ def unrelated_pair(source_model: np.ndarray, target_model: np.ndarray, n: int, n
     from gctr_cli.geometry import apply
 
     rng = np.random.default_rng(seed)
-    a = source_model[rng.choice(len(source_model), min(n, len(source_model)), replace=False)]
-    distance = np.linalg.norm(a - a[rng.integers(len(a))], axis=1)
-    a = a[distance <= np.quantile(distance, rng.uniform(0.5, 1.0))]
+    a = _cropped_subset(rng, source_model, n)
     b = target_model[rng.choice(len(target_model), min(n, len(target_model)), replace=False)]
     a, b, T = _noisy_and_similarity(rng, a, b, noise * _diagonal(source_model), noise * _diagonal(target_model))
     return apply(T, a), b, T
@@ -106,9 +112,7 @@ def mirrored_pair(model_points: np.ndarray, n: int, noise: float,
     from gctr_cli.geometry import apply
 
     rng = np.random.default_rng(seed)
-    a = model_points[rng.choice(len(model_points), min(n, len(model_points)), replace=False)]
-    distance = np.linalg.norm(a - a[rng.integers(len(a))], axis=1)
-    a = a[distance <= np.quantile(distance, rng.uniform(0.5, 1.0))]
+    a = _cropped_subset(rng, model_points, n)
     normal = rng.normal(size=3)
     normal /= np.linalg.norm(normal)
     a = a - 2.0 * np.outer((a - a.mean(axis=0)) @ normal, normal)

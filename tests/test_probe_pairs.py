@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from data_scripts.probe_pairs import main, mirrored_pair, sparse_pair, unrelated_pair
+from data_scripts.probe_pairs import _cropped_subset, main, mirrored_pair, sparse_pair, unrelated_pair
 from gctr_cli.geometry import apply
 
 pytestmark = pytest.mark.engine
@@ -67,10 +67,7 @@ def test_mirrored_pair_is_a_reflection_of_a_crop_of_the_model():
     source, target, T = mirrored_pair(model, 2000, 0.0, 9)
     assert 1000 <= len(source) <= 2000 and target.shape == (2000, 3)
     assert cKDTree(model).query(target)[0].max() == 0.0
-    draw = np.random.default_rng(9)  # the crop, drawn as mirrored_pair draws it (subset, then ball)
-    crop = model[draw.choice(len(model), 2000, replace=False)]
-    distance = np.linalg.norm(crop - crop[draw.integers(len(crop))], axis=1)
-    crop = crop[distance <= np.quantile(distance, draw.uniform(0.5, 1.0))]
+    crop = _cropped_subset(np.random.default_rng(9), model, 2000)  # the crop, drawn first from the pair's seed
     back = apply(np.linalg.inv(T), source)
     M, *_ = np.linalg.lstsq(crop - crop.mean(0), back - back.mean(0), rcond=None)
     assert np.allclose(M.T @ M, np.eye(3), atol=1e-9) and np.linalg.det(M) == pytest.approx(-1.0)
