@@ -111,7 +111,7 @@ KNOWN_STAGES = ("preprocess", "supervoxels", "triplets", "tensor", "power_iterat
 BASE_COLUMNS = [
     "pair_id", "level", "model", "n_source", "n_target", "seed", "status", "success",
     "rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "log_tm",
-    "scale_gt", "scale_est", "fitness", "n_inliers", "iterations", "overlap",
+    "scale_gt", "scale_est", "fitness", "n_inliers", "iterations", "overlap", "overlap_src",
     "outcome", "confidence", "would_succeed", "score_truth", "score_answer", "diagnosis",
     "time_s", "cpu_s", "load_s",
 ]
@@ -149,6 +149,14 @@ def _proc_status_mb(field: str) -> float:
     return float("nan")
 
 
+def _meta_float(meta: dict[str, Any], key: str) -> float:
+    """A number from the pair's manifest row (the generator's extra columns), NaN when absent or not a number."""
+    try:
+        return float(str(meta.get(key) or "").strip())
+    except ValueError:
+        return math.nan
+
+
 def run_one(task: dict[str, Any]) -> dict[str, Any]:
     """Load, register and score one pair in the current process; return its CSV row (as a dict).
 
@@ -166,6 +174,7 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
 
     config = config_from_dict(task["config"], "<bench config>")
     row: dict[str, Any] = {k: task[k] for k in ("pair_id", "level", "model", "seed")}
+    row["overlap_src"] = _meta_float(task.get("meta", {}), "overlap_src")
     row["threads_env"] = ",".join(os.environ.get(v, "") for v in THREAD_ENV_VARS)
     row["rss_baseline_mb"] = _proc_status_mb("VmRSS")  # interpreter + numpy/scipy + engine imports
 
@@ -804,6 +813,49 @@ def render_verdicts(rows: list[dict[str, Any]], levels: list[str], info: dict[st
             "20 pairs of all levels, and turning the truth by 1° changed it by less than 0.007; twice the seed "
             "spread keeps noise from being read as a difference.", ""]
     out += diagnosis_table(rows, levels)
+    out.append("")
+    out += render_by_overlap(rows, levels)
+    return out
+
+
+#: the shared-share bins of :func:`render_by_overlap` (the generator draws 25-60% for the scene windows)
+OVERLAP_BINS = ((0.0, 0.35), (0.35, 0.45), (0.45, 0.55), (0.55, 1.01))
+#: the levels whose pairs share only part of their points (``overlap_src`` of the generator)
+PARTIAL_LEVELS = ("lowoverlap", "scene")
+
+
+def render_by_overlap(rows: list[dict[str, Any]], levels: list[str]) -> list[str]:
+    """Outcomes of the partial-overlap levels by the share of the source's points that the target also covers
+    (the generator's ``overlap_src``); the scene level split into its LiDAR (NCLT) and depth-camera windows,
+    whose limits differ (docs/scene-probes.md). Empty when no such pair carries the share."""
+    groups: list[tuple[str, list[dict[str, Any]]]] = []
+    for lv in (lv for lv in PARTIAL_LEVELS if lv in levels):
+        rs = [r for r in rows if r["level"] == lv and not math.isnan(r.get("overlap_src", math.nan))]
+        if lv == "scene":
+            groups += [("scene, NCLT LiDAR windows", [r for r in rs if r["model"] == "nclt"]),
+                       ("scene, redkitchen windows", [r for r in rs if r["model"] != "nclt"])]
+        else:
+            groups.append((lv, rs))
+    groups = [(name, rs) for name, rs in groups if rs]
+    if not groups:
+        return []
+    out = ["### Outcomes by shared share (partial-overlap levels)", "",
+           "Each pair's share of the source's points that the target also covers (`overlap_src` of the generator's "
+           "`pairs.csv`). Cells: pairs / success / **silent wrong** / refused (status `failed`) / refused although "
+           "the returned transform was right.", "",
+           "| level | " + " | ".join(f"{lo:.0%}–{min(hi, 1.0):.0%}" if lo > 0 else f"< {hi:.0%}"
+                                    for lo, hi in OVERLAP_BINS) + " |",
+           "|---|" + "---:|" * len(OVERLAP_BINS)]
+    for name, rs in groups:
+        cells = []
+        for lo, hi in OVERLAP_BINS:
+            b = [r for r in rs if lo <= r["overlap_src"] < hi]
+            ok = sum(1 for r in b if outcome(r) == "success")
+            wrong = sum(1 for r in b if outcome(r) == "silent_wrong")
+            failed = [r for r in b if r.get("status") != "ok"]
+            right_refused = sum(1 for r in failed if r.get("would_succeed"))
+            cells.append(f"{len(b)} / {ok} / **{wrong}** / {len(failed)} / {right_refused}" if b else "–")
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
     out.append("")
     return out
 

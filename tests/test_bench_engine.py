@@ -219,6 +219,30 @@ def test_render_verdicts_and_targets():
     assert be.SUCCESS_TARGETS["scene"] == 0.80 and be.SUCCESS_TARGETS["sfm"] == 0.95
 
 
+
+def test_outcomes_by_shared_share_split_the_scene_windows_by_sensor():
+    nan = float("nan")
+
+    def row(level: str, model: str, share: float, status: str, success: bool, would: bool | None) -> dict:
+        return {"pair_id": f"{level}_{model}_{share}", "level": level, "model": model, "overlap_src": share,
+                "status": status, "success": success, "would_succeed": would}
+
+    rows = [row("scene", "nclt", 0.28, "failed", False, False), row("scene", "nclt", 0.30, "ok", False, False),
+            row("scene", "nclt", 0.57, "failed", False, True), row("scene", "nclt", 0.56, "ok", True, True),
+            row("scene", "redkitchen0", 0.40, "ok", True, True), row("scene", "redkitchen0>4", nan, "ok", True, True),
+            row("lowoverlap", "bunny", 0.45, "ok", True, True), row("easy", "bunny", 0.95, "ok", True, True)]
+    text = "\n".join(be.render_by_overlap(rows, ["easy", "lowoverlap", "scene"]))
+    assert "| level | < 35% | 35%–45% | 45%–55% | 55%–100% |" in text
+    # pairs / success / silent wrong / refused / refused although right
+    assert "| scene, NCLT LiDAR windows | 2 / 0 / **1** / 1 / 0 | – | – | 2 / 1 / **0** / 1 / 1 |" in text
+    assert "| scene, redkitchen windows | – | 1 / 1 / **0** / 0 / 0 | – | – |" in text  # the real pair has no share
+    assert "| lowoverlap | – | – | 1 / 1 / **0** / 0 / 0 | – |" in text
+    assert "easy" not in text
+    assert be.render_by_overlap([row("easy", "bunny", 0.9, "ok", True, True)], ["easy"]) == []
+    assert be._meta_float({"overlap_src": " 0.4617 "}, "overlap_src") == 0.4617
+    assert be._meta_float({"overlap_src": ""}, "overlap_src") != be._meta_float({}, "overlap_src")  # both NaN
+
+
 # ------------------------------------------------------------------------------------------ issue 10 stages before
 def test_reference_workload_is_a_positive_time_and_takes_the_fastest_repeat(monkeypatch):
     from data_scripts import common
