@@ -531,6 +531,39 @@ def test_the_mirror_check_keeps_a_right_answer_of_a_nearly_symmetric_shape():
     assert res.evidence["mirror_score"] - res.evidence["score"] < cfg.verdict.mirror_margin
 
 
+def test_the_mirror_search_reuses_the_forward_tensors_a_reflection_leaves_unchanged():
+    """The mirror check searches the forward run's prepared source reflected, with the forward search's
+    tensors: every hypothesis' tensor built on the reflected clouds is the forward one entry for entry (the
+    triangle descriptors are lengths and angles), and the generator ends in the same state."""
+    from gctr_cli.engine.gctr import MIRROR, mirror_config, mirrored_run, run_search
+    from gctr_cli.engine.prepare import StageTimer
+    from gctr_cli.engine.search import hypothesis_tensor, oriented, search_plan
+
+    pair, _ = make_part_pair(_model("bunny"), np.random.default_rng([7, 3]), True, n_source=4000)
+    cfg = EngineConfig()
+    run = run_search(pair.source, pair.target, cfg, 0, StageTimer({}))
+    assert run.tensors and set(run.tensors) <= {h.name for h in search_plan(cfg)}
+    reflected = run.source.reflected(MIRROR, cfg)
+    np.testing.assert_allclose(reflected.salient, run.source.salient * MIRROR)
+    for hypothesis in search_plan(cfg):
+        prior = hypothesis.scale_prior(run.bounds_n)
+        a, b, h, p, _ = oriented(run.source, run.target, hypothesis, prior)
+        am, bm, _, _, _ = oriented(reflected, run.target, hypothesis, prior)
+        rng, rng_m = np.random.default_rng(5), np.random.default_rng(5)
+        H, Hm = hypothesis_tensor(a, b, h, p, cfg, rng), hypothesis_tensor(am, bm, h, p, cfg, rng_m)
+        for field in ("a", "b", "c"):
+            np.testing.assert_array_equal(getattr(H, field), getattr(Hm, field))
+        np.testing.assert_allclose(H.values, Hm.values, rtol=1e-12)
+        assert rng.random() == rng_m.random()
+    # the mirror search takes the tensor of the hypothesis it runs from the forward search
+    overlap = next(h.overlap for h in search_plan(cfg) if h.name in run.tensors)
+    timer = StageTimer({})
+    mirrored = mirrored_run(run, mirror_config(cfg, overlap), 0, timer)
+    assert mirrored.tensors is run.tensors and timer.timings["tensor"] < 0.01
+    np.testing.assert_allclose(mirrored.source.points, run.source.points * MIRROR)
+    np.testing.assert_allclose(mirrored.norm_source.centre, run.norm_source.centre * MIRROR)
+
+
 def test_an_unconfirmed_low_confidence_answer_is_refused():
     """A bunny subset against a dragon (a manifest pairing the wrong files; bench/UNRELATED.md): the search
     lays one on the other at confidence 0.28, which passed the threshold; registered the other way round

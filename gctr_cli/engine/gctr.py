@@ -64,7 +64,7 @@ from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, 
 from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, normalise, validate_cloud
 from gctr_cli.engine.refine import evaluate_fit
 from gctr_cli.engine.result import RegistrationResult
-from gctr_cli.engine.search import Candidate, search, search_plan
+from gctr_cli.engine.search import Candidate, Tensors, search, search_plan
 from gctr_cli.engine.verdict import Agreement, Verdict, displacement, surface_agreement
 from gctr_cli.geometry import split
 
@@ -91,6 +91,7 @@ class SearchRun:
     bounds_n: tuple[float, float]  # the configured scale bounds in normalised units
     candidates: list[Candidate]  # one per hypothesis run that found one, in the plan's order
     rng_refine: np.random.Generator  # the verdict's generator (spawned with the others; builds both refinement clouds)
+    tensors: Tensors  # the search's tensors by hypothesis (reused by the mirror check's search)
 
 
 def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int,
@@ -111,8 +112,9 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size
     bounds_n = (lo * ratio, hi * ratio)
-    candidates = search(src, tgt, plan, rng_overlaps, bounds_n, cfg, timer)
-    return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine)
+    tensors: Tensors = {}
+    candidates = search(src, tgt, plan, rng_overlaps, bounds_n, cfg, timer, tensors)
+    return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine, tensors)
 
 
 #: the reflection the mirror check applies to the source (any reflection is this one up to a rotation)
@@ -152,6 +154,13 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
         run = run_search(source, target, cfg, seed, timer)
     except DegenerateCloudError as err:
         return _failed(str(err), seed, start, timer.timings)
+    return _registered(run, source, target, cfg, seed, start, timer, _confirm)
+
+
+def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, start: float,
+                timer: StageTimer, confirm: bool) -> RegistrationResult:
+    """Stages 4b-6 of :func:`register` on the search ``run`` of the pair (``source``, ``target``, as given):
+    the verdict, the checks and, when ``confirm``, the reverse confirmation and the mirror check."""
     ns, nt, src, tgt, bounds_n, candidates = (run.norm_source, run.norm_target, run.source, run.target,
                                               run.bounds_n, run.candidates)
     refinement: tuple[RefinementCloud, RefinementCloud] | None = None
@@ -213,7 +222,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
         status, message = "failed", (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds "
                                      f"[{lo}, {hi}]: refined without it, the alignment moves to scale {free:.4g} "
                                      "(widen scale_bounds)")
-    if status == "ok" and _confirm and verdict.confidence < cfg.verdict.reverse_below:
+    if status == "ok" and confirm and verdict.confidence < cfg.verdict.reverse_below:
         t = time.perf_counter()
         moved = reverse_displacement(source, target, cfg, seed, T_n, ns, nt, src.surface.sample)
         timer.add("verdict", t)
@@ -224,12 +233,13 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
                 f"{truncated(verdict.confidence)}, below verdict.reverse_below "
                 f"{cfg.verdict.reverse_below:.2f}, an answer needs that confirmation")
     mirror: dict[str, float] = {}
-    if status == "ok" and _confirm and verdict.score < cfg.verdict.mirror_below:
+    if status == "ok" and confirm and verdict.score < cfg.verdict.mirror_below:
         # A mirror image (a cloud with a flipped axis) has no right rotation, but the best one can stand out
         # among the other poor ones (confidence 1 on a mirrored bunny): is the source's reflection a better fit?
         t = time.perf_counter()
-        mirrored = register(np.asarray(source, dtype=float) * MIRROR, target, mirror_config(cfg, best.overlap), seed,
-                            _confirm=False)
+        cfg_m, timer_m = mirror_config(cfg, best.overlap), StageTimer({})  # the whole check is booked as verdict
+        mirrored = _registered(mirrored_run(run, cfg_m, seed, timer_m), np.asarray(source, dtype=float) * MIRROR,
+                               target, cfg_m, seed, t, timer_m, False)
         timer.add("verdict", t)
         mirror = {"mirror_score": mirrored.evidence.get("score", float("nan")),
                   "mirror_confidence": mirrored.confidence, "mirror_ok": float(mirrored.status == "ok")}
@@ -249,6 +259,22 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
                   "target_conflict": verdict.agreement.conflict_target, "support": verdict.support,
                   "relief_confidence": verdict.relief_confidence, **mirror},
     )
+
+
+def mirrored_run(run: SearchRun, cfg: EngineConfig, seed: int, timer: StageTimer) -> SearchRun:
+    """The search of the mirror check: ``run``'s prepared clouds with the source reflected (:data:`MIRROR`;
+    the target and the scale bounds as they were), searched with ``cfg`` (:func:`mirror_config`). A
+    hypothesis the forward search ran reuses its tensor and generator (a reflection changes no triangle
+    descriptor: the same tensor, checked entry for entry in the tests); the others get the generators
+    ``seed`` gives a search. Preparing the reflected source again would give the same cloud up to the voxel
+    grid's alignment, at the cost of preparing both clouds and building the tensor a second time."""
+    plan = search_plan(cfg)
+    _, _, rng_refine, *rngs = _generators(seed, len(plan))
+    ns = run.norm_source
+    src = run.source.reflected(MIRROR, cfg)
+    candidates = search(src, run.target, plan, rngs, run.bounds_n, cfg, timer, run.tensors)
+    return SearchRun(NormalisedCloud(ns.points * MIRROR, ns.centre * MIRROR, ns.size), run.norm_target, src,
+                     run.target, run.bounds_n, candidates, rng_refine, run.tensors)
 
 
 def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, RefinementCloud], cfg: EngineConfig,
@@ -335,11 +361,16 @@ def _prepared_pair(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, se
     generators, in that order, so that :func:`run_search` and the scoring tools below prepare the clouds
     identically."""
     src_raw, tgt_raw = validate_cloud(source, "source"), validate_cloud(target, "target")
-    rng_src, rng_tgt, rng_refine, *extra = [np.random.default_rng(s)
-                                            for s in np.random.SeedSequence(seed).spawn(3 + n_extra)]
+    rng_src, rng_tgt, rng_refine, *extra = _generators(seed, n_extra)
     ns, nt = normalise(src_raw), normalise(tgt_raw)
     return (ns, nt, prepare_cloud(ns.points, cfg, rng_src, timer), prepare_cloud(nt.points, cfg, rng_tgt, timer),
             rng_refine, extra)
+
+
+def _generators(seed: int, n_extra: int) -> list[np.random.Generator]:
+    """The pair's generators: the source's, the target's, the verdict's, then ``n_extra`` more (the search's
+    hypotheses'), all spawned from ``seed``."""
+    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3 + n_extra)]
 
 
 def _normalised(transform: np.ndarray, ns: NormalisedCloud, nt: NormalisedCloud) -> np.ndarray:

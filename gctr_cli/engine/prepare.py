@@ -45,6 +45,18 @@ class PreparedCloud:
     roughness: float  # median distance of the points from their local PCA planes (preprocess.normals_and_roughness)
     grids: dict = field(default_factory=dict, compare=False)
 
+    def reflected(self, mirror: np.ndarray, cfg: EngineConfig) -> PreparedCloud:
+        """The same cloud reflected by the diagonal ``mirror`` (e.g. x -> -x): points, normals and salient
+        points mirrored, the trees and the verdict's sample built again (the mirror gate of the search)."""
+        points, normals = self.points * mirror, self.normals * mirror
+        tree = cKDTree(points)
+        salient = self.salient * mirror
+        return PreparedCloud(points=points, normals=normals, tree=tree, salient=salient,
+                             salient_normals=self.salient_normals * mirror, salient_tree=cKDTree(salient),
+                             roughness=self.roughness,
+                             surface=Surface.build(points, normals, tree, cfg.verdict.sample_points,
+                                                   cfg.verdict.normal_balance))
+
     def grid(self, radius: float) -> OccupancyGrid:
         """Occupancy grid of the working cloud at ``radius`` (built once, then cached)."""
         if radius not in self.grids:

@@ -6,6 +6,7 @@ hypotheses in order and stops early once the answer is settled.
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass
@@ -262,11 +263,24 @@ def oriented(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothes
     return src, tgt, hypothesis, prior, False
 
 
+#: the third-order tensors of a search by hypothesis name, each with its generator as it was once the tensor
+#: was built (:func:`search`)
+Tensors = dict[str, tuple[SparseTensor3, np.random.Generator]]
+
+
 def _run_hypothesis(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float],
-                    cfg: EngineConfig, rng: np.random.Generator, timer: StageTimer) -> Candidate | None:
-    """The tensor and the outer loop of one overlap hypothesis (``None`` when nothing was found)."""
+                    cfg: EngineConfig, rng: np.random.Generator, timer: StageTimer,
+                    tensors: Tensors | None = None) -> Candidate | None:
+    """The tensor and the outer loop of one overlap hypothesis (``None`` when nothing was found); the tensor
+    is taken from ``tensors`` when it holds the hypothesis, else built (and kept there)."""
     t = time.perf_counter()
-    H3 = hypothesis_tensor(src, tgt, hypothesis, prior, cfg, rng)
+    if tensors is not None and hypothesis.name in tensors:
+        H3, state = tensors[hypothesis.name]
+        rng = copy.deepcopy(state)
+    else:
+        H3 = hypothesis_tensor(src, tgt, hypothesis, prior, cfg, rng)
+        if tensors is not None:
+            tensors[hypothesis.name] = (H3, copy.deepcopy(rng))
     timer.add("tensor", t)
     if len(H3.values) < 3:
         return None
@@ -305,9 +319,15 @@ def settled(best: Candidate, candidates: list[Candidate], src: PreparedCloud, cf
 
 
 def search(src: PreparedCloud, tgt: PreparedCloud, plan: list[OverlapHypothesis], rngs: list[np.random.Generator],
-           bounds_n: tuple[float, float], cfg: EngineConfig, timer: StageTimer) -> list[Candidate]:
+           bounds_n: tuple[float, float], cfg: EngineConfig, timer: StageTimer,
+           tensors: Tensors | None = None) -> list[Candidate]:
     """Run the overlap hypotheses of ``plan`` in order (one generator each) and return the candidate
     transform of each that found one; stops early once the answer is settled (:func:`settled`).
+
+    ``tensors``, when given, keeps each hypothesis' tensor, and a hypothesis already in it reuses its tensor
+    and generator state: the triangles, their descriptors and so the tensor depend only on lengths and
+    angles, which a reflection leaves unchanged, so the mirror check (``gctr.mirrored_run``) searches the
+    reflected source with the forward search's tensors, as it would have built them.
 
     A hypothesis whose *target* is the part runs with the clouds swapped (target -> source, then
     inverted): the part always takes the role of the source, whose few triangles all lie inside
@@ -321,7 +341,7 @@ def search(src: PreparedCloud, tgt: PreparedCloud, plan: list[OverlapHypothesis]
         if prior[0] >= prior[1]:
             continue
         a, b, run_as, run_prior, swapped = oriented(src, tgt, hypothesis, prior)
-        cand = _run_hypothesis(a, b, run_as, run_prior, cfg, rng, timer)
+        cand = _run_hypothesis(a, b, run_as, run_prior, cfg, rng, timer, tensors)
         if cand is None:
             continue
         if swapped:
