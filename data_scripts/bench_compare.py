@@ -79,6 +79,7 @@ from data_scripts.common import (  # noqa: E402
     confidence_sweep,
     diagnose,
     diagnosis_table,
+    float_or_nan,
     machine_info,
     outcome,
     outcome_table,
@@ -465,9 +466,9 @@ def _matrix(t: dict[str, str] | None) -> np.ndarray | None:
 
 
 def _within(e: dict[str, str], thresholds: dict[str, float]) -> bool:
-    return (_float(e.get("rot_err_deg")) < thresholds["rotation_deg"]
-            and _float(e.get("trans_err_rel")) < thresholds["translation_rel"]
-            and _float(e.get("scale_err")) < thresholds["scale"])
+    return (float_or_nan(e.get("rot_err_deg")) < thresholds["rotation_deg"]
+            and float_or_nan(e.get("trans_err_rel")) < thresholds["translation_rel"]
+            and float_or_nan(e.get("scale_err")) < thresholds["scale"])
 
 
 def load_rows(work: Path, data: Path, methods: tuple[str, ...], levels: tuple[str, ...],
@@ -486,21 +487,21 @@ def load_rows(work: Path, data: Path, methods: tuple[str, ...], levels: tuple[st
                 t, e = tr.get(pid), er.get(pid)
                 row: dict[str, Any] = {
                     "method": method, "level": level, "pair_id": pid, "model": m.get("model", ""),
-                    "scale_gt": _float(m.get("scale_gt")), "overlap_src": _float(m.get("overlap_src")),
-                    "overlap_tgt": _float(m.get("overlap_tgt")),
+                    "scale_gt": float_or_nan(m.get("scale_gt")), "overlap_src": float_or_nan(m.get("overlap_src")),
+                    "overlap_tgt": float_or_nan(m.get("overlap_tgt")),
                     "status": t["status"] if t else "missing", "message": t["message"] if t else "no row written",
-                    "runtime_s": _float(t["runtime_s"]) if t else math.nan,
-                    "fitness": _float(t["fitness"]) if t else math.nan,
+                    "runtime_s": float_or_nan(t["runtime_s"]) if t else math.nan,
+                    "fitness": float_or_nan(t["fitness"]) if t else math.nan,
                 }
                 ok_errors = e if t and t["status"] == "ok" and e else None  # the tm_errors row of an ok pair
                 ok = ok_errors is not None
                 for k in ("rot_err_deg", "trans_err", "trans_err_rel", "scale_err", "tm_err"):
-                    row[k] = _float(ok_errors[k]) if ok_errors is not None else math.inf
+                    row[k] = float_or_nan(ok_errors[k]) if ok_errors is not None else math.inf
                 row["success"] = ok_errors is not None and ok_errors["success"] == "true"
                 # issue 9: confidence column of transforms.csv (NaN when the batch has none or the method
                 # returns NaN) and the would-be success of the returned matrix whatever the status (None when
                 # the row has no usable matrix: failed rows of the batch runner have empty matrix cells)
-                row["confidence"] = _float(t.get("confidence")) if t else math.nan
+                row["confidence"] = float_or_nan(t.get("confidence")) if t else math.nan
                 mat = _matrix(t)
                 row["matrix"] = mat
                 if ok:
@@ -518,13 +519,6 @@ def _read_csv(path: Path) -> list[dict[str, str]]:
         return []
     with open(path, newline="") as fh:
         return list(csv.DictReader(fh))
-
-
-def _float(x: Any) -> float:
-    try:
-        return float(x)
-    except (TypeError, ValueError):
-        return math.nan
 
 
 # ============================================================================================ stats

@@ -82,6 +82,7 @@ from data_scripts.common import (
     confidence_sweep,
     diagnose,
     diagnosis_table,
+    float_or_nan,
     machine_info,
     outcome,
     outcome_table,
@@ -149,14 +150,6 @@ def _proc_status_mb(field: str) -> float:
     return float("nan")
 
 
-def _meta_float(meta: dict[str, Any], key: str) -> float:
-    """A number from the pair's manifest row (the generator's extra columns), NaN when absent or not a number."""
-    try:
-        return float(str(meta.get(key) or "").strip())
-    except ValueError:
-        return math.nan
-
-
 def run_one(task: dict[str, Any]) -> dict[str, Any]:
     """Load, register and score one pair in the current process; return its CSV row (as a dict).
 
@@ -174,7 +167,7 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
 
     config = config_from_dict(task["config"], "<bench config>")
     row: dict[str, Any] = {k: task[k] for k in ("pair_id", "level", "model", "seed")}
-    row["overlap_src"] = _meta_float(task.get("meta", {}), "overlap_src")
+    row["overlap_src"] = float_or_nan(task.get("meta", {}).get("overlap_src"))  # the generator's column
     row["threads_env"] = ",".join(os.environ.get(v, "") for v in THREAD_ENV_VARS)
     row["rss_baseline_mb"] = _proc_status_mb("VmRSS")  # interpreter + numpy/scipy + engine imports
 

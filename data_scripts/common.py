@@ -12,6 +12,7 @@ import os
 import platform
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -19,6 +20,14 @@ FORMATS = ("ply", "pcd", "xyz")
 
 
 # --------------------------------------------------------------------------------------------- reading
+def float_or_nan(x: Any) -> float:
+    """``x`` as a float (a manifest cell, a CSV field), NaN when it is empty, missing or not a number."""
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
     """Parse a ``*_poses_world_from_scan.txt`` file: a scan name line, then 4 rows of a 4x4 matrix.
 

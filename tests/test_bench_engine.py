@@ -239,8 +239,8 @@ def test_outcomes_by_shared_share_split_the_scene_windows_by_sensor():
     assert "| lowoverlap | – | – | 1 / 1 / **0** / 0 / 0 | – |" in text
     assert "easy" not in text
     assert be.render_by_overlap([row("easy", "bunny", 0.9, "ok", True, True)], ["easy"]) == []
-    assert be._meta_float({"overlap_src": " 0.4617 "}, "overlap_src") == 0.4617
-    assert be._meta_float({"overlap_src": ""}, "overlap_src") != be._meta_float({}, "overlap_src")  # both NaN
+    assert be.float_or_nan(" 0.4617 ") == 0.4617  # a manifest cell
+    assert be.float_or_nan("") != be.float_or_nan(None)  # both NaN
 
 
 # ------------------------------------------------------------------------------------------ issue 10 stages before

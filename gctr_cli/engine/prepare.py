@@ -47,7 +47,7 @@ class PreparedCloud:
 
     def reflected(self, mirror: np.ndarray, cfg: EngineConfig) -> PreparedCloud:
         """The same cloud reflected by the diagonal ``mirror`` (e.g. x -> -x): points, normals and salient
-        points mirrored, the trees and the verdict's sample built again (the mirror gate of the search)."""
+        points mirrored, the trees and the verdict's sample built again (the mirror check's search)."""
         points, normals = self.points * mirror, self.normals * mirror
         tree = cKDTree(points)
         salient = self.salient * mirror
