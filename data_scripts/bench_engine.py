@@ -35,7 +35,9 @@ failure instead of hanging the pool. ``-j`` runs that many children at once; the
 issue is for one worker (``-j 1``, the default) on the 2-core machine.
 
 Issue 9 adds, per pair: ``outcome`` (success / silent_wrong = status ok but wrong / failed),
-``confidence`` (``RegistrationResult.confidence``; NaN when the engine has none), ``would_succeed`` (the
+``refusal`` (why a failed pair was refused, ``RegistrationResult.refusal``: only ``low_confidence`` is
+lifted by a lower threshold in the sweep), ``confidence`` (``RegistrationResult.confidence``; NaN when the
+engine has none), ``would_succeed`` (the
 returned transform is within the success thresholds whatever the status; empty when it is the identity
 or not finite), and for every unsuccessful pair ``score_truth`` / ``score_answer`` (the engine's own
 score, ``gctr_cli.engine.score_transform``, of the ground truth and of the answer) with the
@@ -113,7 +115,7 @@ BASE_COLUMNS = [
     "pair_id", "level", "model", "n_source", "n_target", "seed", "status", "success",
     "rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "log_tm",
     "scale_gt", "scale_est", "fitness", "n_inliers", "iterations", "overlap", "overlap_src",
-    "outcome", "confidence", "would_succeed", "score_truth", "score_answer", "diagnosis",
+    "outcome", "refusal", "confidence", "would_succeed", "score_truth", "score_answer", "diagnosis",
     "time_s", "cpu_s", "load_s",
 ]
 #: the verdict's inputs (``RegistrationResult.evidence``): what a change to the confidence is studied on
@@ -188,6 +190,7 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     row["rss_increment_mb"] = row["peak_rss_mb"] - row["rss_baseline_mb"]
 
     row["status"] = str(result.status)
+    row["refusal"] = str(getattr(result, "refusal", ""))  # why the engine refused it (confidence_sweep needs it)
     row["message"] = " ".join(str(result.message or "").split())
     row["fitness"] = float(result.fitness)
     row["n_inliers"] = int(result.n_inliers)

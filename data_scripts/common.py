@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from gctr_cli.engine.result import THRESHOLD_REFUSAL
+
 FORMATS = ("ply", "pcd", "xyz")
 
 
@@ -254,9 +256,10 @@ def confidence_sweep(rows: list[dict], thresholds=CONFIDENCE_THRESHOLDS) -> list
     * ``correct_refused``: refused although the transform was right (``would_succeed`` True, ``conf < t``);
     * ``success``: accepted and right; ``refused``: all the refused pairs; ``pairs``: all pairs.
 
-    A pair the engine refused because the reverse registration did not confirm it (message ``not
-    confirmed: ...``) counts as refused at every threshold: below ``verdict.reverse_below`` the check
-    refuses it, and above its confidence the threshold does.
+    A pair the engine refused for another reason than its confidence (``refusal`` set and not
+    :data:`~gctr_cli.engine.result.THRESHOLD_REFUSAL`: not confirmed the other way round, mirrored, held at
+    a scale bound, too weak evidence) counts as refused at every threshold: no threshold would accept it.
+    An ambiguous or low-confidence refusal is accepted from the thresholds its confidence reaches.
     """
     out = []
     for t in thresholds:
@@ -265,8 +268,8 @@ def confidence_sweep(rows: list[dict], thresholds=CONFIDENCE_THRESHOLDS) -> list
         for r in rows:
             ws = r.get("would_succeed")
             conf = r.get("confidence", math.nan)
-            unconfirmed = str(r.get("message") or "").startswith("not confirmed")
-            accepted = ws is not None and not unconfirmed and (_is_nan(conf) or conf >= t)
+            refused_anyway = str(r.get("refusal") or "") not in ("", THRESHOLD_REFUSAL)
+            accepted = ws is not None and not refused_anyway and (_is_nan(conf) or conf >= t)
             if not accepted:
                 c["refused"] += 1
                 c["correct_refused"] += int(ws is True)

@@ -85,6 +85,7 @@ def register(source, target, config=None, seed=0):
         message=message,
         runtime_s=time.perf_counter() - t0,
         seed=seed,
+        refusal="" if status == "ok" else "weak_evidence",
     )
 
 

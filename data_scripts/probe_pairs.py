@@ -154,7 +154,7 @@ def run_one(task: tuple[str, str, int, float, int, int, dict[str, Any]]) -> dict
         "refused right" if right else "refused wrong")
     evidence = result.evidence or {}
     return {"kind": kind, "model": models, "n": n, "noise": noise, "rep": rep, "status": result.status,
-            "outcome": outcome, "confidence": round(result.confidence, 4),
+            "outcome": outcome, "refusal": result.refusal, "confidence": round(result.confidence, 4),
             "score": round(evidence.get("score", float("nan")), 4),
             "mirror_score": round(evidence.get("mirror_score", float("nan")), 4),
             "rot_err_deg": round(err.rot_err_deg, 3) if kind == "sparse" else "",
@@ -171,10 +171,9 @@ def report(rows: list[dict[str, Any]], title: str, provenance: list[str], thresh
         sel = [r for r in rows if n == "all" or r["n"] == n]
         lines.append(f"| {n} | {len(sel)} | " + " | ".join(str(sum(r['outcome'] == k for r in sel)) for k in kinds)
                      + " |")
-    # the trade-off offline: a pair refused for another reason than its confidence counts as refused
-    swept = [{"would_succeed": r["outcome"] in ("right", "refused right"), "message": r["message"],
-              "confidence": r["confidence"] if r["status"] == "ok" or "confidence" in r["message"] else 0.0}
-             for r in rows]
+    # the trade-off offline (a pair refused for another reason than its confidence counts as refused)
+    swept = [{"would_succeed": r["outcome"] in ("right", "refused right"), "refusal": r["refusal"],
+              "confidence": r["confidence"]} for r in rows]
     lines += ["", "Confidence threshold (all pairs; the configured one marked):", "",
               *sweep_table({"gctr": confidence_sweep(swept, sweep_thresholds(threshold))}, threshold)]
     wrong = [r for r in rows if r["outcome"] == "silent wrong"]

@@ -192,14 +192,20 @@ def test_confidence_sweep_counts():
     assert {(c["silent_wrong"], c["correct_refused"]) for c in common.confidence_sweep(nan_rows)} == {(2, 0)}
 
 
-def test_confidence_sweep_counts_an_unconfirmed_answer_as_refused_at_every_threshold():
-    """A right answer at confidence 0.21 that the reverse registration did not confirm was refused: the
-    configured row must say so, and so must every lower threshold."""
-    rows = [{"would_succeed": True, "confidence": 0.21, "status": "failed",
-             "message": "not confirmed: registered the other way round (target onto source), ..."},
-            {"would_succeed": True, "confidence": 0.21, "status": "ok", "message": ""}]
+@pytest.mark.parametrize("refusal", ["not_confirmed", "mirrored", "scale_held", "weak_evidence"])
+def test_confidence_sweep_counts_a_refusal_no_threshold_lifts_as_refused_at_every_threshold(refusal):
+    """A right answer at confidence 0.21 refused for another reason than its confidence (here: not confirmed
+    the other way round, mirrored, held at a scale bound, too weak evidence) was refused: the configured row
+    must say so, and so must every lower threshold."""
+    rows = [{"would_succeed": True, "confidence": 0.21, "status": "failed", "refusal": refusal},
+            {"would_succeed": True, "confidence": 0.21, "status": "ok", "refusal": ""}]
     for c in common.confidence_sweep(rows, (0.0, 0.15, 0.3)):
         assert c["correct_refused"] == (1 if c["threshold"] < 0.21 else 2)
+
+
+def test_confidence_sweep_accepts_a_low_confidence_refusal_from_the_thresholds_it_reaches():
+    rows = [{"would_succeed": True, "confidence": 0.12, "status": "failed", "refusal": "low_confidence"}]
+    assert [c["success"] for c in common.confidence_sweep(rows, (0.0, 0.1, 0.15))] == [1, 1, 0]
 
 
 def test_sweep_table_marks_configured_threshold():

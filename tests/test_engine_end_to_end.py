@@ -141,7 +141,7 @@ def registered(kind: str, seed: int) -> RegistrationResult:
 def test_bunny_half_density_random_similarity(seed):
     case = bunny_case(seed)
     res = registered("bunny", seed)
-    assert res.status == "ok", res.message
+    assert res.status == "ok" and res.refusal == "", res.message
     e = case.errors(res.transform)
     assert e.rot_err_deg < 2.0, e
     assert e.scale_err < 0.02, e
@@ -375,6 +375,7 @@ def test_sparse_cloud_fails_gracefully():
     res = register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0)
     assert res.status == "failed"
     assert any(m in res.message for m in ("too few salient points", "too weak evidence", "no consistent")), res.message
+    assert res.refusal in ("invalid_input", "weak_evidence", "no_correspondences")
     assert res.confidence == 0.0
     assert np.all(np.isfinite(res.transform))
 
@@ -386,6 +387,7 @@ def test_scattered_points_fail_gracefully(n):
     res = register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0)
     assert res.status == "failed"
     assert "too few salient points" in res.message or "too weak evidence" in res.message, res.message
+    assert res.refusal == ("invalid_input" if "too few salient points" in res.message else "weak_evidence")
 
 
 def test_run_search_is_registers_search(monkeypatch):
@@ -437,6 +439,7 @@ def test_true_scale_beyond_scale_bounds_is_refused_not_pinned(true_scale, bounds
     assert res.status == "failed" and res.confidence > 0.9, res  # it was accepted, and confidently
     prefix = f"scale {res.scale:.4g} is held by the {end} end of engine.scale_bounds [{bounds[0]}, {bounds[1]}]: "
     assert res.message.startswith(prefix + "refined without it, the alignment moves to scale "), res.message
+    assert res.refusal == "scale_held"
     free = float(res.message.split("moves to scale ")[1].split()[0])
     assert abs(free / true_scale - 1) < 0.01  # the refinement without bounds finds the true scale
     wide = register(src, tgt, EngineConfig(scale_bounds=(0.01, 100.0)), seed=0)

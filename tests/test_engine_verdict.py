@@ -404,6 +404,7 @@ def test_threshold_is_a_config_key():
     res = register(pair.source, pair.target, strict, seed=0)
     assert res.status == "failed"
     assert res.message.startswith("low confidence") and "threshold 0.99" in res.message, res.message
+    assert res.refusal == "low_confidence"
     assert 0.0 < res.confidence < 0.99
     err = _errors(res.transform, pair.T_gt, pair.source, pair.target)
     assert err.rot_err_deg < 2.0  # refused, but the best transform found is still reported
@@ -511,6 +512,7 @@ def test_a_mirrored_cloud_is_refused():
     without the mirror check; the mirror image fits far better (score 0.52 against 0.14), so it is refused."""
     row = _probe("mirrored", "dragon", 2000, 0.002, 0, 0)
     assert row["status"] == "failed" and row["confidence"] == pytest.approx(0.5543, abs=2e-3)
+    assert row["refusal"] == "mirrored"
     assert row["score"] == pytest.approx(0.139, abs=2e-3) and row["mirror_score"] == pytest.approx(0.519, abs=2e-3)
     assert row["message"] == ("mirrored: the source reflected (x -> -x) fits the target better than any rotation of "
                               "it (score 0.52 against 0.14); one of the clouds has a flipped axis (a left-handed "
@@ -570,6 +572,7 @@ def test_an_unconfirmed_low_confidence_answer_is_refused():
     the pair ends elsewhere, so the answer is refused."""
     row = _probe("unrelated", "bunny>dragon", 1000, 0.002, 3, 50000, 0.3)
     assert row["status"] == "failed" and row["confidence"] == pytest.approx(0.2785, abs=1e-3)
+    assert row["refusal"] == "not_confirmed"
     assert row["message"].startswith("not confirmed: registered the other way round (target onto source), the "
                                      "pair ends at another alignment (")
     assert "at confidence 0.27, below verdict.reverse_below 0.30, an answer needs that confirmation" in row["message"]

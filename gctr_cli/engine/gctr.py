@@ -69,14 +69,14 @@ from gctr_cli.engine.verdict import Agreement, Verdict, displacement, surface_ag
 from gctr_cli.geometry import split
 
 
-def _failed(message: str, seed: int, start: float, timings: dict[str, float],
+def _failed(message: str, refusal: str, seed: int, start: float, timings: dict[str, float],
             transform: np.ndarray | None = None) -> RegistrationResult:
     T = np.eye(4) if transform is None else transform
     s, R, t = split(T)
     return RegistrationResult(transform=T, scale=s, rotation=R, translation=t,
                               fitness=0.0, inlier_rmse=float("nan"), n_inliers=0, iterations=0, status="failed",
                               message=message, runtime_s=time.perf_counter() - start, seed=seed, confidence=0.0,
-                              timings=timings)
+                              timings=timings, refusal=refusal)
 
 
 @dataclass(frozen=True)
@@ -153,7 +153,7 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
     try:
         run = run_search(source, target, cfg, seed, timer)
     except DegenerateCloudError as err:
-        return _failed(str(err), seed, start, timer.timings)
+        return _failed(str(err), "invalid_input", seed, start, timer.timings)
     return _registered(run, source, target, cfg, seed, start, timer, _confirm)
 
 
@@ -196,7 +196,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
     if verdict is None:
         return _failed("no consistent correspondences found (RANSAC found no valid similarity; if the clouds' "
                        f"units may differ by more than engine.scale_bounds {list(cfg.scale_bounds)} allows, "
-                       "widen it)", seed, start, timer.timings)
+                       "widen it)", "no_correspondences", seed, start, timer.timings)
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size  # normalised scale per original scale
     T_n, held, free = settle_at_bound(T_n, refinement, cfg, ratio, timer) if refinement else (T_n, "", float("nan"))
@@ -205,29 +205,31 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
     best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
     T = denormalise(T_n, ns, nt)
     scale, rotation, translation = split(T)
-    status, message = "ok", ""
+    status, message, refusal = "ok", "", ""
     if best.n_inliers < cfg.ransac.min_inliers:
-        status, message = "failed", (f"too weak evidence: {best.n_inliers} RANSAC inliers "
-                                     f"(need {cfg.ransac.min_inliers})")
+        status, refusal = "failed", "weak_evidence"
+        message = f"too weak evidence: {best.n_inliers} RANSAC inliers (need {cfg.ransac.min_inliers})"
     elif fit.fitness < cfg.min_fitness:
-        status, message = "failed", f"too weak evidence: fitness {fit.fitness:.3f} below {cfg.min_fitness}"
+        status, refusal = "failed", "weak_evidence"
+        message = f"too weak evidence: fitness {fit.fitness:.3f} below {cfg.min_fitness}"
     elif not lo * (1.0 - BOUND_TOLERANCE) <= scale <= hi * (1.0 + BOUND_TOLERANCE):
-        status, message = "failed", f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
+        status, refusal = "failed", "scale_bounds"
+        message = f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
     elif verdict.confidence < cfg.min_confidence:
-        status, message = "failed", refusal_message(verdict, cfg)
+        status, refusal, message = "failed", "low_confidence", refusal_message(verdict, cfg)
         if held:
             message += (f"; its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] "
                         f"(without it: {free:.4g})")
     elif held:
-        status, message = "failed", (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds "
-                                     f"[{lo}, {hi}]: refined without it, the alignment moves to scale {free:.4g} "
-                                     "(widen scale_bounds)")
+        status, refusal = "failed", "scale_held"
+        message = (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}]: refined "
+                   f"without it, the alignment moves to scale {free:.4g} (widen scale_bounds)")
     if status == "ok" and confirm and verdict.confidence < cfg.verdict.reverse_below:
         t = time.perf_counter()
         moved = reverse_displacement(source, target, cfg, seed, T_n, ns, nt, src.surface.sample)
         timer.add("verdict", t)
         if not moved <= cfg.verdict.distinct_ratio:
-            status, message = "failed", (
+            status, refusal, message = "failed", "not_confirmed", (
                 f"not confirmed: registered the other way round (target onto source), the pair ends at another "
                 f"alignment ({moved:.2f} of the target's size away); at confidence "
                 f"{truncated(verdict.confidence)}, below verdict.reverse_below "
@@ -244,7 +246,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         mirror = {"mirror_score": mirrored.evidence.get("score", float("nan")),
                   "mirror_confidence": mirrored.confidence, "mirror_ok": float(mirrored.status == "ok")}
         if mirrored.status == "ok" and mirror["mirror_score"] - verdict.score >= cfg.verdict.mirror_margin:
-            status, message = "failed", (
+            status, refusal, message = "failed", "mirrored", (
                 f"mirrored: the source reflected (x -> -x) fits the target better than any rotation of it (score "
                 f"{mirror['mirror_score']:.2f} against {verdict.score:.2f}); one of the clouds has a flipped axis "
                 "(a left-handed coordinate system?): flip it and register again")
@@ -258,6 +260,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
                   "source_conflict": verdict.agreement.conflict_source,
                   "target_conflict": verdict.agreement.conflict_target, "support": verdict.support,
                   "relief_confidence": verdict.relief_confidence, **mirror},
+        refusal=refusal,
     )
 
 

@@ -6,6 +6,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+#: why the engine refused a pair (``RegistrationResult.refusal``); only ``low_confidence`` depends on
+#: ``min_confidence``: the others refuse at any threshold
+REFUSALS = ("invalid_input", "no_correspondences", "weak_evidence", "scale_bounds", "low_confidence",
+            "scale_held", "not_confirmed", "mirrored")
+#: the refusal a lower ``min_confidence`` would have turned into an ``ok`` (an ambiguous pair is one too)
+THRESHOLD_REFUSAL = "low_confidence"
+
 
 @dataclass(frozen=True)
 class RegistrationResult:
@@ -32,6 +39,11 @@ class RegistrationResult:
     is the engine's wall time and ``timings`` its seconds per stage; ``evidence`` holds the verdict's
     inputs (its score, the best rival's score, agreement and conflict shares, support, relief
     confidence); ``seed`` is the seed the draws came from; ``ok`` is ``status == "ok"``.
+
+    ``refusal`` says why a failed result was refused, one of :data:`REFUSALS` (``""`` when ok, and for
+    the comparison methods): ``low_confidence`` (below ``min_confidence``, ambiguous pairs included) is
+    the only one a lower threshold would have accepted, which is what an offline sweep of the
+    threshold needs to know.
     """
 
     transform: np.ndarray
@@ -50,6 +62,7 @@ class RegistrationResult:
     confidence: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)
     evidence: dict[str, float] = field(default_factory=dict)  # the verdict's inputs (see engine.verdict)
+    refusal: str = ""  # why a failed result was refused: one of REFUSALS
 
     @property
     def ok(self) -> bool:
