@@ -544,7 +544,8 @@ def test_the_mirror_search_reuses_the_forward_tensors_a_reflection_leaves_unchan
     pair, _ = make_part_pair(_model("bunny"), np.random.default_rng([7, 3]), True, n_source=4000)
     cfg = EngineConfig()
     run = run_search(pair.source, pair.target, cfg, 0, StageTimer({}))
-    assert run.tensors and set(run.tensors) <= {h.name for h in search_plan(cfg)}
+    searched = {key[0].name for key in run.tensors}
+    assert run.tensors and searched <= {h.name for h in search_plan(cfg)}
     reflected = run.source.reflected(MIRROR, cfg)
     np.testing.assert_allclose(reflected.salient, run.source.salient * MIRROR)
     for hypothesis in search_plan(cfg):
@@ -558,10 +559,14 @@ def test_the_mirror_search_reuses_the_forward_tensors_a_reflection_leaves_unchan
         np.testing.assert_allclose(H.values, Hm.values, rtol=1e-12)
         assert rng.random() == rng_m.random()
     # the mirror search takes the tensor of the hypothesis it runs from the forward search
-    overlap = next(h.overlap for h in search_plan(cfg) if h.name in run.tensors)
-    timer = StageTimer({})
+    overlap = next(h.overlap for h in search_plan(cfg) if h.name in searched)
+    timer, kept = StageTimer({}), len(run.tensors)
     mirrored = mirrored_run(run, mirror_config(cfg, overlap), 0, timer)
-    assert mirrored.tensors is run.tensors and timer.timings["tensor"] < 0.01
+    assert mirrored.tensors is run.tensors and len(run.tensors) == kept and timer.timings["tensor"] < 0.01
+    # a search with other tensor settings builds its own tensor instead of taking the forward one
+    other = mirror_config(cfg.model_copy(update={"tensor": cfg.tensor.model_copy(update={"knn": 9})}), overlap)
+    mirrored_run(run, other, 0, StageTimer({}))
+    assert len(run.tensors) == kept + 1
     np.testing.assert_allclose(mirrored.source.points, run.source.points * MIRROR)
     np.testing.assert_allclose(mirrored.norm_source.centre, run.norm_source.centre * MIRROR)
 

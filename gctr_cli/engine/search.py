@@ -263,9 +263,16 @@ def oriented(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothes
     return src, tgt, hypothesis, prior, False
 
 
-#: the third-order tensors of a search by hypothesis name, each with its generator as it was once the tensor
-#: was built (:func:`search`)
-Tensors = dict[str, tuple[SparseTensor3, np.random.Generator]]
+#: the third-order tensors of a search, each with its generator as it was once the tensor was built
+#: (:func:`search`), keyed by :func:`tensor_key`
+Tensors = dict[tuple[object, ...], tuple[SparseTensor3, np.random.Generator]]
+
+
+def tensor_key(hypothesis: OverlapHypothesis, prior: tuple[float, float], cfg: EngineConfig) -> tuple[object, ...]:
+    """What a hypothesis' tensor depends on besides the two clouds' salient points and normals: its regions,
+    the scale prior (the perimeter-ratio filter) and the triangle and tensor settings. A search with another
+    config (the mirror check's lighter one) reuses a tensor only where all of these are the same."""
+    return (hypothesis, prior, cfg.triplets.model_dump_json(), cfg.tensor.model_dump_json())
 
 
 def _run_hypothesis(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapHypothesis, prior: tuple[float, float],
@@ -274,13 +281,14 @@ def _run_hypothesis(src: PreparedCloud, tgt: PreparedCloud, hypothesis: OverlapH
     """The tensor and the outer loop of one overlap hypothesis (``None`` when nothing was found); the tensor
     is taken from ``tensors`` when it holds the hypothesis, else built (and kept there)."""
     t = time.perf_counter()
-    if tensors is not None and hypothesis.name in tensors:
-        H3, state = tensors[hypothesis.name]
+    key = tensor_key(hypothesis, prior, cfg)
+    if tensors is not None and key in tensors:
+        H3, state = tensors[key]
         rng = copy.deepcopy(state)
     else:
         H3 = hypothesis_tensor(src, tgt, hypothesis, prior, cfg, rng)
         if tensors is not None:
-            tensors[hypothesis.name] = (H3, copy.deepcopy(rng))
+            tensors[key] = (H3, copy.deepcopy(rng))
     timer.add("tensor", t)
     if len(H3.values) < 3:
         return None
@@ -324,10 +332,11 @@ def search(src: PreparedCloud, tgt: PreparedCloud, plan: list[OverlapHypothesis]
     """Run the overlap hypotheses of ``plan`` in order (one generator each) and return the candidate
     transform of each that found one; stops early once the answer is settled (:func:`settled`).
 
-    ``tensors``, when given, keeps each hypothesis' tensor, and a hypothesis already in it reuses its tensor
-    and generator state: the triangles, their descriptors and so the tensor depend only on lengths and
-    angles, which a reflection leaves unchanged, so the mirror check (``gctr.mirrored_run``) searches the
-    reflected source with the forward search's tensors, as it would have built them.
+    ``tensors``, when given, keeps each hypothesis' tensor, and a hypothesis already in it (the same
+    regions, scale prior and triangle and tensor settings: :func:`tensor_key`) reuses its tensor and
+    generator state: the triangles, their descriptors and so the tensor depend only on lengths and angles,
+    which a reflection leaves unchanged, so the mirror check (``gctr.mirrored_run``) searches the reflected
+    source with the forward search's tensors, as it would have built them.
 
     A hypothesis whose *target* is the part runs with the clouds swapped (target -> source, then
     inverted): the part always takes the role of the source, whose few triangles all lie inside
