@@ -255,7 +255,8 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
         for name in rewritten:
             if (outdir / name).is_file():
                 originals[name] = (outdir / name).read_bytes()
-        done = prepare_outdir(outdir, config, resume, {p.pair_id for p in pairs})
+        done = prepare_outdir(outdir, config, resume, {p.pair_id for p in pairs},
+                              batch_outputs(outdir, pairs, snapshots, write_aligned))
         todo = [p for p in pairs if p.pair_id not in done]
         n_resumed = len(pairs) - len(todo)
         resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})

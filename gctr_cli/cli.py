@@ -80,6 +80,17 @@ def _more_verbose(ctx: click.Context, param: click.Parameter, verbose: int) -> N
         _setup_logging(ctx.meta[VERBOSITY])
 
 
+class _Path(click.Path):
+    """A path argument or option that refuses an empty value: ``-o "$out"`` with ``out`` unset would
+    otherwise mean the current folder (a batch's files written wherever the job happens to run)."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and not value.strip():
+            hint = "; '.' is the current folder" if self.dir_okay else ""
+            self.fail(f"is empty (an unset shell variable?){hint}", param, ctx)
+        return super().convert(value, param, ctx)
+
+
 def verbose_option(command):
     """The group's ``-v``/``-vv``, also accepted after a command's name."""
     option = click.option("-v", "--verbose", count=True, expose_value=False, callback=_more_verbose,
@@ -251,17 +262,17 @@ def main(verbose: int) -> None:
 
 
 @main.command()
-@click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
-@click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
+@click.argument("source", type=_Path(dir_okay=False, path_type=Path))
+@click.argument("target", type=_Path(dir_okay=False, path_type=Path))
+@click.option("-c", "--config", "config_path", type=_Path(dir_okay=False),
               help="YAML config (default: built-in defaults).")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--output", type=_Path(dir_okay=False, path_type=Path),
               help="Write the 4x4 matrix to this file (missing folders are created).")
-@click.option("--gt", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--gt", type=_Path(dir_okay=False, path_type=Path),
               help="Ground-truth matrix: also print the errors.")
 @click.option("--seed", type=click.IntRange(min=0), help="Engine seed (default: the config seed). To reproduce a "
               "batch row, pass its seed column.")
-@click.option("--aligned", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--aligned", type=_Path(dir_okay=False, path_type=Path),
               help="Also write SOURCE moved onto TARGET to this file (.ply, .pcd, .las, .laz, .xyz, .pts, .txt; "
                    "attributes kept where the format allows).")
 @verbose_option
@@ -337,7 +348,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
                   f"tm_err: {e.tm_err:.6g}", f"success: {'true' if outcome.success else 'false'}"]
     if transform is not None and aligned is not None:
         lines.append(f"aligned: {aligned}")
-    _print_report("\n".join(lines) + "\n")
+    _print_report("\n".join(lines) + "\n", only_copy=transform is not None and output is None)
     if transform is None:
         for path, what in ((output, "matrix"), (aligned, "aligned cloud")):
             if path is not None:
@@ -345,26 +356,36 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         sys.exit(EXIT_FAILED)
 
 
-def _print_report(text: str) -> None:
-    """``text`` on stdout, after the command's files are written (:func:`_stdout_may_fail`)."""
-    with _stdout_may_fail("the result"):
+def _print_report(text: str, only_copy: bool = False) -> None:
+    """``text`` on stdout, after the command's files are written (:func:`_stdout_may_fail`; ``only_copy``:
+    the text holds a matrix written nowhere else)."""
+    if only_copy and sys.stdout is None:  # closed (>&-): nothing can be printed
+        _die("cannot print the result (stdout is closed), and without -o FILE the printed matrix is its only "
+             "copy: pass -o FILE to write it to a file")
+    with _stdout_may_fail("the result", only_copy=only_copy):
         click.echo(text, nl=False)
 
 
 @contextmanager
-def _stdout_may_fail(what: str, results: Path | None = None) -> Iterator[None]:
+def _stdout_may_fail(what: str, results: Path | None = None, only_copy: bool = False) -> Iterator[None]:
     """Printing ``what`` in the block: a stdout that is closed, full or read by a reader that stopped
     early (``gctr register … | head -1``) is not an error of the command, whose files are written: the
-    rest is dropped (with a warning unless the reader just quit) and the exit code stays the command's."""
+    rest is dropped (with a warning unless the reader just quit) and the exit code stays the command's.
+    Unless ``only_copy`` (``register`` without ``-o``: the printed matrix is the result): a stdout that
+    cannot be written (full, an I/O error) then exits 2, or a script would take the lost matrix for a success."""
     try:
         yield
         if sys.stdout is not None:  # None: closed (>&-); click.echo then prints nothing
             sys.stdout.flush()
     except OSError as exc:
-        if not isinstance(exc, BrokenPipeError):
-            where = f"; the results are in {results}" if results is not None else ""
-            logger.warning("cannot print %s (%s)%s", what, exc.strerror or exc, where)
         _stdout_to_devnull()
+        if isinstance(exc, BrokenPipeError):
+            return
+        if only_copy:
+            _die(f"cannot print {what} ({exc.strerror or exc}), and without -o FILE the printed matrix is its "
+                 "only copy: pass -o FILE to write it to a file")
+        where = f"; the results are in {results}" if results is not None else ""
+        logger.warning("cannot print %s (%s)%s", what, exc.strerror or exc, where)
 
 
 def _stdout_to_devnull() -> None:
@@ -403,9 +424,9 @@ def _check_writable(path: Path | None) -> None:
 
 
 @main.command()
-@click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
-@click.argument("input", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.argument("matrix", type=_Path(dir_okay=False, path_type=Path))
+@click.argument("input", type=_Path(dir_okay=False, path_type=Path))
+@click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
               help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts or .txt (missing folders are created).")
 @verbose_option
 def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the argument's name in --help
@@ -495,10 +516,10 @@ def _print_summary(summary: Any, config: Any) -> None:
 
 
 @main.command(epilog=EXIT_CODES_HELP)
-@click.argument("manifest", type=click.Path(path_type=Path))
-@click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False),
+@click.argument("manifest", type=_Path(path_type=Path))
+@click.option("-c", "--config", "config_path", type=_Path(dir_okay=False),
               help="YAML config (default: built-in defaults).")
-@click.option("-o", "--outdir", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("-o", "--outdir", required=True, type=_Path(file_okay=False, path_type=Path),
               help="Output folder (created if needed).")
 @click.option("-j", "--workers", type=click.IntRange(min=0),
               help="Worker processes (default: config batch.workers; 0 = one per core).")
@@ -629,11 +650,11 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
 
 
 @main.command()
-@click.argument("source", type=click.Path(dir_okay=False, path_type=Path))
-@click.argument("target", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("-m", "--matrix", type=click.Path(dir_okay=False, path_type=Path),
+@click.argument("source", type=_Path(dir_okay=False, path_type=Path))
+@click.argument("target", type=_Path(dir_okay=False, path_type=Path))
+@click.option("-m", "--matrix", type=_Path(dir_okay=False, path_type=Path),
               help="4x4 source->target matrix (e.g. OUTDIR/matrices/<pair_id>.txt): also show the clouds registered.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
               help="PNG file to write.")
 @click.option("--max-points", type=click.IntRange(min=10), default=3000, show_default=True,
               help="Points drawn per cloud (evenly subsampled).")
@@ -693,10 +714,10 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
 
 
 @main.command()
-@click.argument("source_dir", type=click.Path(path_type=Path))
-@click.argument("target_dir", type=click.Path(path_type=Path))
-@click.option("--gt-dir", type=click.Path(path_type=Path), help="Folder of ground-truth matrices named <stem>.txt.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.argument("source_dir", type=_Path(path_type=Path))
+@click.argument("target_dir", type=_Path(path_type=Path))
+@click.option("--gt-dir", type=_Path(path_type=Path), help="Folder of ground-truth matrices named <stem>.txt.")
+@click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
               help="Manifest CSV to write.")
 @verbose_option
 def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Path) -> None:
@@ -784,7 +805,7 @@ def config_group() -> None:
 
 
 @config_group.command("show")
-@click.argument("file", required=False, type=click.Path(dir_okay=False))
+@click.argument("file", required=False, type=_Path(dir_okay=False))
 @verbose_option
 def config_show(file: str | None) -> None:
     """Print the default config (or FILE resolved with defaults) as commented YAML.
@@ -801,7 +822,7 @@ def config_show(file: str | None) -> None:
 
 
 @config_group.command("check")
-@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("file", type=_Path(dir_okay=False))
 @verbose_option
 def config_check(file: str) -> None:
     """Validate FILE: exit 0 and print "ok: FILE", or exit 2 naming each bad key and the expected type.

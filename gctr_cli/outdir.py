@@ -229,12 +229,26 @@ def check_same_config(outdir: Path, config: Config) -> None:
         )
 
 
-def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str] | None = None) -> set[str]:
+def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str] | None = None,
+                   written: dict[Path, str] | None = None) -> set[str]:
     """Make the folder consistent for appending; return the pair ids already committed. On ``resume``
     the rows of pairs whose outputs could not be written are dropped, so that they run again (only of
-    pairs in ``pair_ids``, the batch's, when given: another manifest's rows stay)."""
+    pairs in ``pair_ids``, the batch's, when given: another manifest's rows stay).
+
+    ``written`` (:func:`batch_outputs`): in a folder without ``transforms.csv`` (no gctr run started there)
+    a file at one of these paths is someone else's, and :class:`BatchError` is raised rather than
+    overwriting it."""
     transforms = outdir / TRANSFORMS_FILE
     errors = outdir / ERRORS_FILE
+    if written and not os.path.lexists(transforms):
+        # a folder in a file's place is not overwritten: writing there fails that pair (an "output" row)
+        found = [(path, what) for path, what in written.items() if os.path.lexists(path) and not path.is_dir()]
+        if found:
+            path, what = found[0]
+            more = f" (and {len(found) - 1} more of its files)" if len(found) > 1 else ""
+            raise BatchError(f"{path} already exists, but {outdir} holds no gctr run (no {TRANSFORMS_FILE}): the "
+                             f"batch would overwrite it with {what}{more}; choose another output folder or move "
+                             "the files away (nothing was run)")
     (outdir / MATRICES_DIR).mkdir(exist_ok=True)
 
     if not resume:

@@ -328,6 +328,29 @@ def test_existing_outputs_are_never_overwritten_without_resume(four_pairs, fast_
     assert not (out / LOCK_NAME).exists()
 
 
+@pytest.mark.parametrize("resume", [False, True])
+@pytest.mark.parametrize("theirs", ["config.yaml", "report.html", "tm_errors.csv", "matrices/ply_ply.txt"])
+def test_a_folder_without_a_gctr_run_keeps_files_the_batch_would_overwrite(four_pairs, fast_config, tmp_path,
+                                                                         theirs, resume):
+    """Only ``transforms.csv`` was checked: a user's own ``report.html`` or ``config.yaml`` in OUTDIR was
+    replaced without a word. A folder that holds no gctr run (no ``transforms.csv``) and a file where the
+    batch writes is refused, with or without ``--resume``; other files (another name in ``matrices/``) are fine."""
+    out = tmp_path / "out"
+    (out / "matrices").mkdir(parents=True)
+    (out / theirs).write_text("mine\n")
+    (out / "matrices" / "unrelated.txt").write_text("mine too\n")
+    with pytest.raises(BatchError, match=r"out/" + theirs.replace(".", r"\.") + r" already exists, but .*out holds no "
+                       r"gctr run \(no transforms\.csv\): the batch would overwrite it"):
+        run(four_pairs, fast_config, out, resume=resume)
+    assert (out / theirs).read_text() == "mine\n"
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == sorted(
+        {"matrices", "matrices/unrelated.txt", theirs})
+    (out / theirs).unlink()
+    run(four_pairs, fast_config, out, resume=resume)  # the same folder without that file runs
+    assert (out / "matrices" / "unrelated.txt").read_text() == "mine too\n"
+    assert len(read_csv(out / "transforms.csv")[1]) == len(four_pairs.rows)
+
+
 def test_resume_skips_done_pairs_and_repairs_interrupted_files(four_pairs, fast_config, tmp_path):
     out = tmp_path / "out"
     all_rows = list(four_pairs.rows)

@@ -261,9 +261,12 @@ def test_a_full_disk_for_the_lock_is_a_setup_error_and_leaves_nothing(four_pairs
 def test_a_stop_before_the_first_pair_removes_only_what_the_run_created(four_pairs, fast_config, tmp_path,
                                                                         monkeypatch):
     """A folder reached through '..' after a folder the run creates, a file someone adds meanwhile, and the
-    matrix of a first pair interrupted while it was being recorded."""
+    matrix of a first pair interrupted while it was being recorded. The folder holds an earlier run that
+    stopped before its first pair (a header-only ``transforms.csv`` and its ``config.yaml``), the one case
+    in which a batch without ``--resume`` may rewrite a ``config.yaml`` it finds: it is put back."""
     (tmp_path / "results").mkdir()
-    (tmp_path / "results" / "config.yaml").write_text("the user's own\n")
+    (tmp_path / "results" / "config.yaml").write_text("the earlier run's\n")
+    (tmp_path / "results" / "transforms.csv").write_text(",".join(TRANSFORMS_COLUMNS) + "\n")
     real_append = outdir.RowLog.append
 
     def append(self, fields):
@@ -277,8 +280,9 @@ def test_a_stop_before_the_first_pair_removes_only_what_the_run_created(four_pai
     monkeypatch.chdir(tmp_path)
     with pytest.raises(KeyboardInterrupt):
         run_batch(four_pairs.specs(), fast_config, "new/../results", workers=1, register_fn=fake_engine.register)
-    assert sorted(p.name for p in (tmp_path / "results").iterdir()) == ["config.yaml", "notes.txt"]
-    assert (tmp_path / "results" / "config.yaml").read_text() == "the user's own\n"
+    assert sorted(p.name for p in (tmp_path / "results").iterdir()) == ["config.yaml", "notes.txt", "transforms.csv"]
+    assert (tmp_path / "results" / "config.yaml").read_text() == "the earlier run's\n"
+    assert read_csv(tmp_path / "results" / "transforms.csv")[1] == []
     assert not (tmp_path / "new").exists()  # created on the way to results/, removed again
 
 

@@ -730,6 +730,13 @@ def test_register_and_apply_with_stdout_closed_or_full_write_their_files(tmp_pat
         assert out.is_file()
         warned = "cannot print the result (No space left on device)" in done.stderr
         assert warned == (stdout == "full"), done.stderr
+    # without -o the printed matrix is the only result: losing it is an error, not a success
+    done = run("register", src, tgt)
+    problem = "stdout is closed" if stdout == "closed" else "No space left on device"
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip().endswith(
+        f"gctr: error: cannot print the result ({problem}), and without -o FILE the printed matrix is its only "
+        "copy: pass -o FILE to write it to a file"), done.stderr
 
 
 def test_register_sets_up_the_allocator(runner, fake_register, four_pairs, monkeypatch):
@@ -812,3 +819,21 @@ def test_a_mirrored_real_scan_is_refused_and_registers_once_flipped_back(runner,
     write_matrix(gt, np.array([[float(v) for v in line.split()] for line in lines[i + 1:i + 5]]))
     res = invoke(runner, "register", back, model, "--gt", gt, "-c", config)
     assert res.exit_code == 0 and "status: ok" in res.output and "success: true" in res.output.lower()
+
+
+@pytest.mark.parametrize("command", ["batch", "register", "apply", "manifest", "show"])
+def test_an_empty_path_is_a_usage_error_not_the_current_folder(runner, four_pairs, tmp_path, monkeypatch, command):
+    """``-o "$out"`` with ``out`` unset: an empty path meant the current folder, so a batch wrote its files
+    wherever the cron job happened to run. Every path option and argument now refuses it (exit 2)."""
+    monkeypatch.chdir(tmp_path)
+    src, tgt = (four_pairs.root / four_pairs.rows[0][k] for k in ("source", "target"))
+    args = {"batch": ["batch", four_pairs.manifest(), "-o", ""],
+            "register": ["register", src, tgt, "-o", ""],
+            "apply": ["apply", "", src, "-o", tmp_path / "moved.ply"],
+            "manifest": ["manifest", four_pairs.root, "", "-o", tmp_path / "pairs.csv"],
+            "show": ["show", src, tgt, "-o", ""]}[command]
+    before = set(os.listdir(tmp_path))
+    result = invoke(runner, *args)
+    assert result.exit_code == 2, result.output
+    assert "is empty (an unset shell variable?)" in result.output
+    assert set(os.listdir(tmp_path)) == before

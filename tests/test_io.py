@@ -612,6 +612,18 @@ def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
         assert_error(ei, path, *keywords)
 
 
+def test_pts_count_line_below_the_points_warns_and_reads_them_all(tmp_path, rng, caplog):
+    """A count line lower than the points that follow (extra rows of a PLY or PCD are ignored with a warning):
+    every point is read, and the mismatch is said, as for the other formats."""
+    pts = np.round(rng.normal(size=(30, 3)), 3)
+    path = tmp_path / "short_count.pts"
+    path.write_text("20\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts) + "\n")
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    np.testing.assert_allclose(load_point_cloud(path), pts)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: line 1 declares 20 points but the file has 30 (all 30 read)"]
+
+
 def test_text_without_numbers(tmp_path):
     path = tmp_path / "words.txt"
     path.write_text("hello world\nthis is not a cloud\n")

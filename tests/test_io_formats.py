@@ -86,6 +86,9 @@ def test_las_truncated_and_lying_headers_are_refused_before_allocating(tmp_path)
     (tmp_path / "text.las").write_text("1 2 3\n" * 100)
     with pytest.raises(PointCloudError, match=r"text\.las: not a LAS/LAZ file"):
         load_point_cloud(tmp_path / "text.las")
+    (tmp_path / "stub.las").write_bytes(data[:100])  # cut inside the header: the signature is there
+    with pytest.raises(PointCloudError, match=r"stub\.las: truncated LAS file: 100 bytes, but the LAS header alone"):
+        load_point_cloud(tmp_path / "stub.las")
 
 
 def test_laz_lying_point_count_and_corrupt_data(tmp_path):

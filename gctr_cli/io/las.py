@@ -42,8 +42,10 @@ _MIN_RECORD = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9:
 
 def _check_header(path: Path, head: bytes, size: int, compressed_ext: bool) -> tuple[int, bool]:
     """Validate the fixed LAS header against the file size; return (point count, compressed)."""
-    if len(head) < 227 or head[:4] != b"LASF":
+    if head[:4] != b"LASF":
         raise PointCloudError(f"{path}: not a LAS/LAZ file (missing 'LASF' signature)")
+    if len(head) < 227:
+        raise PointCloudError(f"{path}: truncated LAS file: {size} bytes, but the LAS header alone takes 227")
     major, minor = head[24], head[25]
     if major != 1 or minor > 4:
         raise PointCloudError(f"{path}: unsupported LAS version {major}.{minor} (1.0 to 1.4 are read)")

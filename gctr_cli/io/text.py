@@ -19,6 +19,7 @@ of points, not the size of the text: about 180 MB and 7 s for 2 million points. 
 from __future__ import annotations
 
 import io as _stdio
+import logging
 import re
 import warnings
 from collections.abc import Iterator
@@ -30,6 +31,8 @@ import numpy as np
 from gctr_cli.io.cloud import PointCloud
 from gctr_cli.io.errors import PointCloudError, quote
 from gctr_cli.io.ply import format_columns
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["read_text", "text_bytes"]
 
@@ -156,6 +159,11 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         declared, lineno, sections = state["count"]
         what = f"line {lineno} declares" if sections == 1 else f"its {sections} point-count lines declare"
         raise PointCloudError(f"{path}: {what} {declared} points but the file has {len(pts)} (truncated?)")
+    if state.get("count") and state["count"][0] < len(pts):
+        declared, lineno, sections = state["count"]
+        what = f"line {lineno} declares" if sections == 1 else f"its {sections} point-count lines declare"
+        logger.warning("%s: %s %d points but the file has %d (all %d read)", path, what, declared, len(pts),
+                       len(pts))
     return PointCloud(pts, {}, "xyz")
 
 
