@@ -55,6 +55,7 @@ from gctr_cli.outdir import (
     TRANSFORMS_FILE,
     Outputs,
     batch_outputs,
+    check_case_collisions,
     prepare_outdir,
 )
 from gctr_cli.pair import RegisterFn, derive_seed, run_pair
@@ -255,6 +256,7 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
         for name in rewritten:
             if (outdir / name).is_file():
                 originals[name] = (outdir / name).read_bytes()
+        check_case_collisions(outdir, (p.pair_id for p in pairs))
         done = prepare_outdir(outdir, config, resume, {p.pair_id for p in pairs},
                               batch_outputs(outdir, pairs, snapshots, write_aligned))
         todo = [p for p in pairs if p.pair_id not in done]

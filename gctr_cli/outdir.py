@@ -23,6 +23,7 @@ import csv
 import io as _stdio
 import logging
 import os
+import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -227,6 +228,29 @@ def check_same_config(outdir: Path, config: Config) -> None:
             f"cannot resume: the config differs from {path} ({shown}{more}); resume with "
             f"-c {path} or choose another output folder"
         )
+
+
+def case_insensitive(folder: Path) -> bool:
+    """Whether ``folder``'s filesystem treats names that differ only in case as one (macOS and Windows by
+    default, many network shares): a probe file is created and looked up with its case swapped."""
+    fd, name = tempfile.mkstemp(prefix=".gctr-case-probe-", dir=folder)
+    os.close(fd)
+    try:
+        return os.path.exists(os.path.join(folder, os.path.basename(name).swapcase()))
+    finally:
+        os.unlink(name)
+
+
+def check_case_collisions(outdir: Path, pair_ids: Iterable[str]) -> None:
+    """Raise :class:`BatchError` when two pair ids differ only in case and ``outdir`` does not tell such
+    names apart: their matrices (``matrices/A.txt``, ``matrices/a.txt``) would overwrite each other."""
+    first: dict[str, str] = {}
+    for pid in pair_ids:
+        other = first.setdefault(pid.casefold(), pid)
+        if other != pid and case_insensitive(outdir):
+            raise BatchError(f"pair ids {other!r} and {pid!r} differ only in case, and the filesystem of {outdir} "
+                             f"does not tell such file names apart: {MATRICES_DIR}/{pid}.txt would overwrite "
+                             f"{MATRICES_DIR}/{other}.txt; rename one of them (nothing was run)")
 
 
 def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str] | None = None,

@@ -321,3 +321,32 @@ def test_an_output_folder_name_the_system_refuses_is_exit_2(four_pairs, tmp_path
     result = invoke("batch", four_pairs.manifest(), "-o", tmp_path / ("a" * 300) / "out", "-q")
     assert result.exit_code == 2 and "cannot create output folder" in result.output
     assert "File name too long" in result.output
+
+
+@pytest.mark.parametrize("insensitive", [True, False])
+def test_pair_ids_that_differ_only_in_case_are_refused_where_their_files_would_collide(
+        four_pairs, fast_config, tmp_path, monkeypatch, insensitive):
+    """``A`` and ``a`` are two pairs on Linux, but one file on macOS, Windows and many network shares: the
+    second matrix would overwrite the first. Refused (nothing run) only where the folder's filesystem does
+    not tell them apart."""
+    four_pairs.rows = [dict(four_pairs.rows[0], pair_id="Scan_1"), dict(four_pairs.rows[1], pair_id="scan_1")]
+    probed = []
+    monkeypatch.setattr(outdir, "case_insensitive", lambda folder: probed.append(folder) or insensitive)
+    out = tmp_path / "out"
+    if insensitive:
+        with pytest.raises(BatchError, match=r"pair ids 'Scan_1' and 'scan_1' differ only in case, and the "
+                                             r"filesystem of .*out does not tell such file names apart"):
+            run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+        assert not out.exists()
+    else:
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+        assert sorted(p.name for p in (out / "matrices").iterdir()) == ["Scan_1.txt", "scan_1.txt"]
+    assert probed == [out]
+
+
+def test_the_case_probe_tells_this_filesystem_and_leaves_nothing(tmp_path):
+    expected = os.path.exists(str(tmp_path).swapcase()) if str(tmp_path).swapcase() != str(tmp_path) else None
+    found = outdir.case_insensitive(tmp_path)
+    assert isinstance(found, bool) and list(tmp_path.iterdir()) == []
+    if expected is not None:  # the folder's own name, looked up with its case swapped, says the same
+        assert found == expected
