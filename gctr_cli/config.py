@@ -231,7 +231,8 @@ class EngineConfig(_Strict):
     outer: OuterLoopConfig = OuterLoopConfig()
     refine: RefineConfig = RefineConfig()
     verdict: VerdictConfig = VerdictConfig()
-    overlap: Literal["auto"] | float = Field("auto", description="'auto' searches overlap_candidates, largest first, then part_regions")
+    overlap: Literal["auto"] | float = Field(
+        "auto", description="'auto' searches overlap_candidates, largest first, then part_regions")
     overlap_candidates: tuple[float, ...] = Field((0.25, 0.5, 0.75, 1.0), description="ratios tried by 'auto'")
     part_regions: tuple[float, ...] = Field(
         (0.45,), description="'auto' also tries one cloud as a part of the other: the part's diameter / the whole's")
