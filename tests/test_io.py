@@ -344,6 +344,19 @@ def test_text_data_under_a_binary_header_is_named(tmp_path, cloud, ext):
 
 
 @pytest.mark.parametrize("ext", [".ply", ".pcd"])
+def test_binary_data_under_an_ascii_header_is_named(tmp_path, cloud, ext):
+    """The reverse: a binary body under a header that says ascii gave 'line 12: point has 23 values'."""
+    binary_path, path = tmp_path / f"b{ext}", tmp_path / f"mislabelled{ext}"
+    save_point_cloud(binary_path, cloud, binary=True)
+    data = binary_path.read_bytes()
+    data = data.replace(b"format binary_little_endian", b"format ascii").replace(b"DATA binary", b"DATA ascii")
+    path.write_bytes(data)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "says", "ascii but the data is binary")
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
 def test_ascii_rows_beyond_the_declared_count_are_named(tmp_path, cloud, ext, caplog):
     """A header that declares fewer points than the data holds is read as declared, with a warning
     (it went unnoticed): the count may be the mistake, or the extra lines."""
@@ -610,6 +623,17 @@ def test_text_dialect_holds_for_the_whole_file(tmp_path, rng):
         with pytest.raises(PointCloudError) as ei:
             load_point_cloud(path)
         assert_error(ei, path, *keywords)
+
+
+def test_a_ply_version_other_than_1_0_is_read_with_a_warning(tmp_path, rng, caplog):
+    pts = np.round(rng.normal(size=(20, 3)), 3)
+    path = tmp_path / "v2.ply"
+    path.write_text("ply\nformat ascii 2.0\nelement vertex 20\nproperty float x\nproperty float y\n"
+                    "property float z\nend_header\n" + "\n".join(" ".join(f"{v:.3f}" for v in p) for p in pts) + "\n")
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    np.testing.assert_allclose(load_point_cloud(path), pts, atol=1e-6)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: PLY header line 2: version '2.0' (only 1.0 is defined); read as 1.0"]
 
 
 def test_pts_count_line_below_the_points_warns_and_reads_them_all(tmp_path, rng, caplog):

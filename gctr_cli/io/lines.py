@@ -17,7 +17,7 @@ import numpy as np
 from gctr_cli.io.cloud import ATTRIBUTE_NOTE, integer_misfit
 from gctr_cli.io.errors import PointCloudError, clean, quote
 
-__all__ = ["MAX_LINE", "LineReader", "as_declared", "numeric_text", "parse_float", "read_rows"]
+__all__ = ["MAX_LINE", "LineReader", "as_declared", "binary_data", "numeric_text", "parse_float", "read_rows"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -38,6 +38,18 @@ def numeric_text(fh) -> bool:
     data = fh.read(256)
     fh.seek(start)
     return len(data) >= 16 and b"\n" in data and all(b in _NUMERIC_TEXT for b in data)
+
+
+def binary_data(fh) -> bool:
+    """Whether the data section that starts at ``fh``'s position (left where it was) is binary: a NUL byte,
+    or more than a tenth of its first 256 bytes neither printable ASCII nor blanks (text numbers, even
+    with a stray UTF-8 comment, stay well below), so a header that says ascii over it was written for
+    another format."""
+    start = fh.tell()
+    data = fh.read(256)
+    fh.seek(start)
+    odd = sum(1 for b in data if not (32 <= b < 127 or b in b"\t\r\n"))
+    return len(data) >= 16 and (b"\x00" in data or odd > len(data) // 10)
 
 
 def parse_float(tok: bytes) -> float | None:

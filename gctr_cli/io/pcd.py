@@ -18,7 +18,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.lines import LineReader, as_declared, numeric_text, parse_float, read_rows
+from gctr_cli.io.lines import LineReader, as_declared, binary_data, numeric_text, parse_float, read_rows
 from gctr_cli.io.ply import format_columns, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]
@@ -76,6 +76,9 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                 f"{path}: truncated or corrupt: the header declares {n} points of {ncols} values (at least "
                 f"2 bytes per value) but only {data_bytes} bytes follow the header"
             )
+        if binary_data(fh):
+            raise PointCloudError(f"{path}: the PCD header says DATA ascii but the data is binary (write "
+                                  "'DATA binary' in the header)")
         reader = LineReader(fh, path, hdr.lines)
         rows = read_rows(reader, n, ncols, "point", "points")
         if extra := reader.lines_left():

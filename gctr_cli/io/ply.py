@@ -20,7 +20,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, quote
-from gctr_cli.io.lines import LineReader, as_declared, numeric_text, parse_float, read_rows
+from gctr_cli.io.lines import LineReader, as_declared, binary_data, numeric_text, parse_float, read_rows
 
 __all__ = ["ply_bytes", "read_ply"]
 
@@ -99,6 +99,9 @@ def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     if fmt != "ascii" and numeric_text(fh):
         raise PointCloudError(f"{path}: the PLY header says {fmt} but the data is numbers written as text "
                               "(write 'format ascii 1.0' in the header)")
+    if fmt == "ascii" and binary_data(fh):
+        raise PointCloudError(f"{path}: the PLY header says ascii but the data is binary (write 'format "
+                              "binary_little_endian 1.0' in the header, or 'binary_big_endian' for big-endian data)")
     # every declared size up to the vertex element must fit in the file before anything is allocated
     need = 0
     for el in elements[: vidx + 1]:
@@ -159,6 +162,9 @@ def _parse_header(fh, path: Path) -> tuple[str, list[_Element], int]:
             if len(words) != 3 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
                 raise bad(f"unsupported format line {quote(line, 80)}")
             fmt = words[1]
+            if words[2] not in ("1.0", "1"):
+                logger.warning("%s: PLY header line %d: version %s (only 1.0 is defined); read as 1.0", path, lineno,
+                               quote(words[2], 20))
         elif key == "element":
             if len(words) != 3:
                 raise bad(f"malformed element line {quote(line, 80)}")
