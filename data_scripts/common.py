@@ -259,7 +259,9 @@ def confidence_sweep(rows: list[dict], thresholds=CONFIDENCE_THRESHOLDS) -> list
     A pair the engine refused for another reason than its confidence (``refusal`` set and not
     :data:`~gctr_cli.engine.result.THRESHOLD_REFUSAL`: not confirmed the other way round, mirrored, held at
     a scale bound, too weak evidence) counts as refused at every threshold: no threshold would accept it.
-    An ambiguous or low-confidence refusal is accepted from the thresholds its confidence reaches.
+    An ambiguous or low-confidence refusal is accepted from the thresholds its confidence reaches: an upper
+    bound, since the reverse confirmation and the mirror check, which run only on accepted answers, never ran
+    on it (so ``success`` and ``silent_wrong`` below the configured threshold may be slightly high).
     """
     out = []
     for t in thresholds:

@@ -261,13 +261,15 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
                               batch_outputs(outdir, pairs, snapshots, write_aligned))
         todo = [p for p in pairs if p.pair_id not in done]
         n_resumed = len(pairs) - len(todo)
+        # transforms.csv first: it marks the folder as a gctr run's, so that a kill before the first pair
+        # leaves a folder the next run accepts (prepare_outdir refuses one with outputs but no transforms.csv)
+        outputs = Outputs(outdir, write_aligned=write_aligned)
         resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
         atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
         if snapshots:
             (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
         if write_aligned:
             (outdir / ALIGNED_DIR).mkdir(exist_ok=True)
-        outputs = Outputs(outdir, write_aligned=write_aligned)
         setting_up = False
         if n_resumed:
             logger.info("resuming: %d of %d pairs already done", n_resumed, len(pairs))

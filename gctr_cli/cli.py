@@ -86,7 +86,7 @@ class _Path(click.Path):
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         if isinstance(value, str) and not value.strip():
-            hint = "; '.' is the current folder" if self.dir_okay else ""
+            hint = "; '.' is the current folder" if self.dir_okay and not self.file_okay else ""
             self.fail(f"is empty (an unset shell variable?){hint}", param, ctx)
         return super().convert(value, param, ctx)
 
@@ -296,7 +296,8 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     Exit codes:
       0  registered (status ok)
       1  registration failed (the message says why)
-      2  usage, config or file error (unreadable cloud, bad ground truth)
+      2  usage, config or file error (unreadable cloud, bad ground truth;
+         without -o, a stdout that cannot take the matrix)
     """
     _mark_one_shot()
     _single_threaded_native_libs()
@@ -304,6 +305,9 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
 
     keep_freed_memory()  # about 13% off a fresh process's engine time (see gctr_cli.allocator)
     _check_writable(output)
+    if output is None and sys.stdout is None:  # closed (>&-): the printed matrix would be lost; say so first
+        _die("cannot print the result (stdout is closed), and without -o FILE the printed matrix is its only "
+             "copy: pass -o FILE to write it to a file")
     if aligned is not None:
         _check_output_cloud(aligned)
     config = _load_config(config_path)

@@ -246,7 +246,7 @@ def check_case_collisions(outdir: Path, pair_ids: Iterable[str]) -> None:
     names apart: their matrices (``matrices/A.txt``, ``matrices/a.txt``) would overwrite each other."""
     first: dict[str, str] = {}
     for pid in pair_ids:
-        other = first.setdefault(pid.casefold(), pid)
+        other = first.setdefault(pid.lower(), pid)
         if other != pid and case_insensitive(outdir):
             raise BatchError(f"pair ids {other!r} and {pid!r} differ only in case, and the filesystem of {outdir} "
                              f"does not tell such file names apart: {MATRICES_DIR}/{pid}.txt would overwrite "
@@ -269,6 +269,7 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str
         found = [(path, what) for path, what in written.items() if os.path.lexists(path) and not path.is_dir()]
         if found:
             path, what = found[0]
+            path = outdir / path.relative_to(os.path.realpath(outdir))  # as OUTDIR was given, not resolved
             more = f" (and {len(found) - 1} more of its files)" if len(found) > 1 else ""
             raise BatchError(f"{path} already exists, but {outdir} holds no gctr run (no {TRANSFORMS_FILE}): the "
                              f"batch would overwrite it with {what}{more}; choose another output folder or move "

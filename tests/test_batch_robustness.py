@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import functools
 import os
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
@@ -350,3 +351,30 @@ def test_the_case_probe_tells_this_filesystem_and_leaves_nothing(tmp_path):
     assert isinstance(found, bool) and list(tmp_path.iterdir()) == []
     if expected is not None:  # the folder's own name, looked up with its case swapped, says the same
         assert found == expected
+
+
+def test_transforms_csv_is_created_before_config_yaml(four_pairs, fast_config, tmp_path, monkeypatch):
+    """A kill -9 between the two must leave a folder the next run accepts: OUTDIR with a config.yaml but no
+    transforms.csv is refused as someone else's (``prepare_outdir``), so transforms.csv comes first."""
+    real_write = batch.atomic_write
+    seen = []
+
+    def atomic_write(path, *args, **kwargs):
+        if Path(path).name == "config.yaml":
+            seen.append((Path(path).parent / "transforms.csv").is_file())
+        return real_write(path, *args, **kwargs)
+
+    monkeypatch.setattr(batch, "atomic_write", atomic_write)
+    run_batch(four_pairs.specs(), fast_config, tmp_path / "out", workers=1, register_fn=fake_engine.register)
+    assert seen == [True]
+
+
+def test_a_refused_folder_is_named_as_given(four_pairs, fast_config, tmp_path):
+    """OUTDIR reached through a link: the message names the file under the path the user gave."""
+    (tmp_path / "real").mkdir()
+    (tmp_path / "real" / "report.html").write_text("mine\n")
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    with pytest.raises(BatchError) as ei:
+        run_batch(four_pairs.specs(), fast_config, tmp_path / "link", workers=1, register_fn=fake_engine.register)
+    assert str(ei.value).startswith(f"{tmp_path / 'link' / 'report.html'} already exists, but {tmp_path / 'link'} "
+                                    "holds no gctr run")

@@ -375,7 +375,9 @@ def test_sparse_cloud_fails_gracefully():
     res = register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0)
     assert res.status == "failed"
     assert any(m in res.message for m in ("too few salient points", "too weak evidence", "no consistent")), res.message
-    assert res.refusal in ("invalid_input", "weak_evidence", "no_correspondences")
+    kind = {"too few salient points": "invalid_input", "too weak evidence": "weak_evidence",
+            "no consistent": "no_correspondences"}
+    assert [res.refusal] == [v for k, v in kind.items() if k in res.message]
     assert res.confidence == 0.0
     assert np.all(np.isfinite(res.transform))
 
@@ -440,6 +442,13 @@ def test_true_scale_beyond_scale_bounds_is_refused_not_pinned(true_scale, bounds
     prefix = f"scale {res.scale:.4g} is held by the {end} end of engine.scale_bounds [{bounds[0]}, {bounds[1]}]: "
     assert res.message.startswith(prefix + "refined without it, the alignment moves to scale "), res.message
     assert res.refusal == "scale_held"
+    if bounds == (0.1, 10.0):  # (the narrow bounds' answer leads by the whole margin, confidence 1 still)
+        # below the threshold as well: the message says both, and the kind is the one no threshold lifts
+        strict = register(src, tgt, EngineConfig(scale_bounds=bounds, min_confidence=0.9999,
+                                                 verdict={"full_margin": 1.0}), seed=0)
+        assert strict.status == "failed" and strict.confidence < 0.9999, strict
+        assert f"; its scale {strict.scale:.4g} is held by the {end} end of engine.scale_bounds" in strict.message
+        assert strict.refusal == "scale_held"
     free = float(res.message.split("moves to scale ")[1].split()[0])
     assert abs(free / true_scale - 1) < 0.01  # the refinement without bounds finds the true scale
     wide = register(src, tgt, EngineConfig(scale_bounds=(0.01, 100.0)), seed=0)

@@ -216,7 +216,8 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         status, refusal = "failed", "scale_bounds"
         message = f"scale {scale:.4g} outside the configured bounds [{lo}, {hi}]"
     elif verdict.confidence < cfg.min_confidence:
-        status, refusal, message = "failed", "low_confidence", refusal_message(verdict, cfg)
+        # held at a bound as well: a lower threshold would refuse it as held, so no threshold accepts it
+        status, refusal, message = "failed", "scale_held" if held else "low_confidence", refusal_message(verdict, cfg)
         if held:
             message += (f"; its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] "
                         f"(without it: {free:.4g})")

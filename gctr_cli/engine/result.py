@@ -10,7 +10,8 @@ import numpy as np
 #: ``min_confidence``: the others refuse at any threshold
 REFUSALS = ("invalid_input", "no_correspondences", "weak_evidence", "scale_bounds", "low_confidence",
             "scale_held", "not_confirmed", "mirrored")
-#: the refusal a lower ``min_confidence`` would have turned into an ``ok`` (an ambiguous pair is one too)
+#: the only refusal a lower ``min_confidence`` could turn into an ``ok`` (an ambiguous pair is one too); it
+#: might not: the reverse confirmation and the mirror check never ran on such a pair
 THRESHOLD_REFUSAL = "low_confidence"
 
 
@@ -42,8 +43,8 @@ class RegistrationResult:
 
     ``refusal`` says why a failed result was refused, one of :data:`REFUSALS` (``""`` when ok, and for
     the comparison methods): ``low_confidence`` (below ``min_confidence``, ambiguous pairs included) is
-    the only one a lower threshold would have accepted, which is what an offline sweep of the
-    threshold needs to know.
+    the only one a lower threshold could have accepted, which is what an offline sweep of the threshold
+    needs to know (an upper bound: the checks that run only on accepted answers never ran on it).
     """
 
     transform: np.ndarray
