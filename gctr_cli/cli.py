@@ -244,7 +244,8 @@ def main(verbose: int) -> None:
       0  success
       1  registration failed (register) / at least one pair failed (batch)
       2  usage, file, manifest or config error: nothing was run; or a
-         batch had to stop (finished pairs saved: --resume)
+         batch had to stop (finished pairs saved: --resume); or register
+         without -o could not print its matrix
       3  batch --min-success: success rate below the threshold
       130/143  stopped by Ctrl-C / SIGTERM
 
