@@ -306,6 +306,11 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
 
     keep_freed_memory()  # about 13% off a fresh process's engine time (see gctr_cli.allocator)
     _check_writable(output)
+    clouds = {"the SOURCE cloud": source, "the TARGET cloud": target, "the --gt matrix": gt}
+    _check_not_an_input(output, clouds)
+    _check_not_an_input(aligned, {**clouds, "the -o matrix": output})
+    if output is not None and aligned is not None and os.path.abspath(output) == os.path.abspath(aligned):
+        _die(f"{output}: given as both -o and --aligned: choose two files")
     if output is None and sys.stdout is None:  # closed (>&-): the printed matrix would be lost; say so first
         _die("cannot print the result (stdout is closed), and without -o FILE the printed matrix is its only "
              "copy: pass -o FILE to write it to a file")
@@ -414,6 +419,17 @@ def _check_output_cloud(path: Path) -> None:
     _check_writable(path)
 
 
+def _check_not_an_input(output: Path | None, inputs: dict[str, Path | None]) -> None:
+    """Exit 2 before any work when ``output`` is one of the command's input files (``inputs``: role ->
+    path; the same file by another name or a hard link included): ``apply m.txt scan.pcd -o scan.pcd``
+    replaced the scan with the moved cloud without a word."""
+    if output is None or not output.exists():
+        return
+    for role, path in inputs.items():
+        if path is not None and path.exists() and os.path.samefile(output, path):
+            _die(f"{output}: is also {role}; writing there would replace it: choose another output file")
+
+
 def _check_writable(path: Path | None) -> None:
     """Exit 2 before any work when a file cannot be written at ``path`` (a file where a folder should
     be, a read-only folder, ...): better than finding out after the registration."""
@@ -456,6 +472,7 @@ def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the 
     """
     _mark_one_shot()
     _check_output_cloud(output)
+    _check_not_an_input(output, {"the INPUT cloud": input, "the MATRIX": matrix})
     from gctr_cli.io import MatrixError, PointCloudError, read_matrix, write_aligned
     from gctr_cli.metrics import is_similarity
 
@@ -683,6 +700,7 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
     if output.suffix.lower() != ".png":
         _die(f"{output}: the picture is written as PNG; give the file the extension .png")
     _check_writable(output)
+    _check_not_an_input(output, {"the SOURCE cloud": source, "the TARGET cloud": target, "the --matrix": matrix})
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
     from gctr_cli.metrics import is_similarity
     from gctr_cli.snapshots import render_snapshot, write_png

@@ -837,3 +837,31 @@ def test_an_empty_path_is_a_usage_error_not_the_current_folder(runner, four_pair
     assert result.exit_code == 2, result.output
     assert "is empty (an unset shell variable?)" in result.output
     assert set(os.listdir(tmp_path)) == before
+
+
+@pytest.mark.parametrize("case", ["apply onto its input", "apply through a link", "register -o onto the source",
+                                  "register --aligned onto the target", "register -o and --aligned the same"])
+def test_an_output_that_is_an_input_is_refused_before_anything_runs(runner, four_pairs, tmp_path, case):
+    """``gctr apply m.txt scan.pcd -o scan.pcd`` replaced the scan with the moved cloud (a read-only file in
+    a shared data folder, as root): an output that is one of the command's inputs is an error (exit 2)."""
+    src, tgt = (four_pairs.root / four_pairs.rows[0][k] for k in ("source", "target"))
+    matrix = tmp_path / "m.txt"
+    matrix.write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    link = tmp_path / f"link{src.suffix}"
+    link.symlink_to(src)
+    args, role = {
+        "apply onto its input": (["apply", matrix, src, "-o", src], "the INPUT cloud"),
+        "apply through a link": (["apply", matrix, src, "-o", link], "the INPUT cloud"),
+        "register -o onto the source": (["register", src, tgt, "-o", src], "the SOURCE cloud"),
+        "register --aligned onto the target": (["register", src, tgt, "--aligned", tgt], "the TARGET cloud"),
+        "register -o and --aligned the same": (["register", src, tgt, "-o", tmp_path / "x.ply", "--aligned",
+                                                tmp_path / "x.ply"], None),
+    }[case]
+    before = src.read_bytes(), tgt.read_bytes()
+    result = invoke(runner, *args)
+    assert result.exit_code == 2, result.output
+    if role is None:
+        assert "given as both -o and --aligned: choose two files" in result.output
+    else:
+        assert f"is also {role}; writing there would replace it: choose another output file" in result.output
+    assert (src.read_bytes(), tgt.read_bytes()) == before
