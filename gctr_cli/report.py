@@ -100,8 +100,8 @@ _JS = """
   function value(row, i, num) {
     var c = row.cells[i];
     var v = c.hasAttribute('data-v') ? c.getAttribute('data-v') : c.textContent;
-    if (!num) return v.toLowerCase();
     if (v === '') return null;
+    if (!num) return v.toLowerCase();
     var x = parseFloat(v);
     return isNaN(x) ? null : x;
   }
@@ -467,6 +467,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
           f"there.</figcaption>\n</figure>\n</section>\n")
 
     n_failed_rows = sum(1 for r in rows if r.get("status") != "ok")
+    gt_ids = set(getattr(s, "gt_ids", ()) or ())
     w("<section id=\"pairs-section\">\n<h2>Pairs</h2>\n<div class=\"controls\">\n")
     w("<label>show <select id=\"status-filter\"><option value=\"all\">all pairs</option>"
       f"<option value=\"ok\">ok ({len(rows) - n_failed_rows})</option>"
@@ -482,6 +483,8 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
         pid = r.get("pair_id", "")
         status = r.get("status", "")
         e = errs.get(pid, {}) if status == "ok" else {}
+        if status != "ok" and pid in gt_ids:
+            e = {"success": "false"}  # a failed pair with ground truth is no success (as the summary counts it)
         cells = {**{k: r.get(k, "") for k in ("pair_id", "status", "message", "fitness", "confidence", "scale",
                                               "runtime_s")},
                  **{k: e.get(k, "") for k in ("rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "success")}}

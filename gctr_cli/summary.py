@@ -43,6 +43,7 @@ class BatchSummary:
     median_tm_err: float | None
     wall_time_s: float
     failures: tuple[tuple[str, str], ...] = field(default_factory=tuple)
+    gt_ids: tuple[str, ...] = ()  # the pairs with ground truth (a failed one among them is no success)
 
     @property
     def all_ok(self) -> bool:
@@ -93,5 +94,6 @@ def summarize(pairs: Sequence[Any], outdir: str | Path, *, wall_time_s: float = 
         median_scale_err=med("scale_err"),
         median_tm_err=med("tm_err"),
         wall_time_s=wall_time_s,
+        gt_ids=tuple(gt_ids),
         failures=tuple(failures),
     )

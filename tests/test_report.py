@@ -108,6 +108,9 @@ def test_report_has_every_pair_summary_and_plot(failing_set, fast_config, tmp_pa
     assert status["raises"] == "failed" and status["ply_ply"] == "ok"
     msgs = dict(zip(column(page, "pair_id"), column(page, "message")))
     assert msgs["raises"] == "ValueError: degenerate input: the source cloud is planar"
+    # a failed pair with ground truth is no success, as the summary counts it (the cell was blank)
+    success = dict(zip(column(page, "pair_id"), column(page, "success")))
+    assert success["raises"] == success["html_in_message"] == "false" and success["no_gt"] == ""
     assert "x<script>.ply: file is empty" in msgs["html_in_message"]  # shown as text...
     assert "x&lt;script&gt;.ply" in text and "x<script>" not in text  # ...escaped in the source
     # summary cards and the error distribution (pairs with ground truth exist)
@@ -236,6 +239,10 @@ def test_report_renders_and_sorts_in_headless_chromium(failing_set, fast_config,
     filled = [e for e in errs if e]
     assert errs[: len(filled)] == filled and len(filled) == 4
     assert [float(e) for e in filled] == sorted((float(e) for e in filled), reverse=True)
+    # a text column: empty cells stay last too (the ok pairs' empty messages came first)
+    res = chromium(tmp_path, "--dump-dom", url + "#sort=message")
+    messages = column(parse(res.stdout), "message")
+    assert messages[:2] == sorted(messages[:2], key=str.lower) and all(messages[:2]) and not any(messages[2:])
     # the snapshot thumbnails are there and point to existing files
     thumbs = {u for u in page.urls if u.startswith("snapshots/")}
     assert len(thumbs) == 7 and all((out / u).exists() for u in thumbs)
