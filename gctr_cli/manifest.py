@@ -249,6 +249,25 @@ def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:
     return {s: _absolute(fs[0]) for s, fs in found.items()}
 
 
+def _clouds(n: int) -> str:
+    return f"{n} cloud" if n == 1 else f"{n} clouds"
+
+
+def _nested_clouds(folder: Path) -> list[str]:
+    """The visible subfolders of ``folder`` that hold point cloud files themselves (not searched: a
+    manifest pairs a folder's own files)."""
+    nested = []
+    for d in sorted(folder.iterdir()):
+        if d.name.startswith(".") or not d.is_dir():
+            continue
+        try:
+            if any(f.suffix.lower() in SUPPORTED_EXTENSIONS and not f.name.startswith(".") for f in d.iterdir()):
+                nested.append(d.name + "/")
+        except OSError:
+            continue
+    return nested
+
+
 def build_manifest(
     source_dir: str | Path, target_dir: str | Path, gt_dir: str | Path | None = None
 ) -> list[PairSpec]:
@@ -274,17 +293,22 @@ def build_manifest(
     only_src = sorted(set(src) - set(tgt))
     only_tgt = sorted(set(tgt) - set(src))
     if only_src or only_tgt:
-        logger.warning(
-            "unmatched stems: %d only in %s [%s]; %d only in %s [%s]",
-            len(only_src), sdir, _listing(only_src), len(only_tgt), tdir, _listing(only_tgt),
-        )
+        sides = [f"{len(only)} only in {d} [{_listing(only)}]" for only, d in ((only_src, sdir), (only_tgt, tdir))
+                 if only]
+        logger.warning("unmatched stems: %s", "; ".join(sides))
+    nested = [f"{d}: {len(sub)} subfolder(s) with point clouds ({_listing(sub)})"
+              for d in (sdir, tdir) if (sub := _nested_clouds(d))]
+    hint = ""
+    if nested:
+        hint = "; subfolders are not searched: " + "; ".join(nested)
+        logger.warning("only the folders' own files pair%s", hint)
     unsafe = [s for s in common if pair_id_problem(s)]
     if unsafe:
         logger.warning("skipping %d stem(s) unsafe as pair_id: %s", len(unsafe), _listing(unsafe))
         common = [s for s in common if s not in unsafe]
     if not common:
         raise ManifestError(
-            f"no matching file stems between {sdir} ({len(src)} clouds) and {tdir} ({len(tgt)} clouds)"
+            f"no matching file stems between {sdir} ({_clouds(len(src))}) and {tdir} ({_clouds(len(tgt))}){hint}"
         )
 
     pairs = []
@@ -300,4 +324,9 @@ def build_manifest(
         pairs.append(PairSpec(stem, src[stem], tgt[stem], gt))
     if missing_gt:
         logger.warning("%d pair(s) have no ground truth in %s: %s", len(missing_gt), gt_dir, _listing(missing_gt))
+    if gt_dir is not None:
+        unused = sorted(f.name for f in Path(gt_dir).iterdir()
+                        if f.suffix == ".txt" and not f.name.startswith(".") and f.stem not in set(common))
+        if unused:
+            logger.warning("%d ground-truth file(s) in %s match no pair: %s", len(unused), gt_dir, _listing(unused))
     return pairs

@@ -267,6 +267,7 @@ def test_build_matches_stems(folders, caplog):
     text = caplog.text
     assert "only_src" in text and "only_tgt" in text  # unmatched stems listed
     assert "s02" in text  # missing ground truth listed
+    assert f"1 ground-truth file(s) in {gt} match no pair: unused.txt" in text
 
 
 def test_build_without_gt(folders):
@@ -292,7 +293,26 @@ def test_build_no_match(tmp_path):
     (tgt / "two.ply").write_text("x")
     with pytest.raises(ManifestError) as ei:
         build_manifest(src, tgt)
-    assert "no matching file stems" in str(ei.value) and "a (1 clouds)" in str(ei.value)
+    assert "no matching file stems" in str(ei.value) and "a (1 cloud)" in str(ei.value)
+
+
+def test_subfolders_with_clouds_are_named_not_searched(tmp_path, caplog):
+    """One folder per site: nested clouds are not paired, and a user got no hint why ('no matching file
+    stems', or fewer pairs than expected)."""
+    src, tgt = tmp_path / "a", tmp_path / "b"
+    for d in (src / "site1", tgt / "site1", src / "empty"):
+        d.mkdir(parents=True)
+    for d in (src / "site1", tgt / "site1"):
+        (d / "scan.ply").write_text("x")
+    (src / "only.ply").write_text("x")
+    with pytest.raises(ManifestError) as ei:
+        build_manifest(src, tgt)
+    assert str(ei.value).endswith(f"; subfolders are not searched: {src}: 1 subfolder(s) with point clouds "
+                                  f"(site1/); {tgt}: 1 subfolder(s) with point clouds (site1/)")
+    (tgt / "only.ply").write_text("x")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        assert [p.pair_id for p in build_manifest(src, tgt)] == ["only"]
+    assert "only the folders' own files pair; subfolders are not searched" in caplog.text
 
 
 def test_build_ambiguous_stem(folders):
