@@ -677,7 +677,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
 @click.option("-m", "--matrix", type=_Path(dir_okay=False, path_type=Path),
               help="4x4 source->target matrix (e.g. OUTDIR/matrices/<pair_id>.txt): also show the clouds registered.")
 @click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
-              help="PNG file to write.")
+              help="PNG file to write (missing folders are created).")
 @click.option("--max-points", type=click.IntRange(min=10), default=3000, show_default=True,
               help="Points drawn per cloud (evenly subsampled).")
 @click.option("--title", help="Title of the picture (default: the two file names).")

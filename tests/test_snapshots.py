@@ -176,3 +176,11 @@ def test_write_png_is_atomic(tmp_path):
     snapshots.write_png(target, b"\x89PNG data")
     assert target.read_bytes() == b"\x89PNG data"
     assert [p.name for p in target.parent.iterdir()] == ["b.png"]
+
+
+def test_a_title_the_font_cannot_draw_gives_no_warning(recwarn):
+    """A pair id in a script DejaVu Sans lacks (CJK) printed four multi-line matplotlib warnings per pair."""
+    rng = np.random.default_rng(0)
+    png = render_snapshot(rng.random((200, 3)), rng.random((200, 3)), np.eye(4), title="扫描_1: ok")
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [str(w.message) for w in recwarn if "Glyph" in str(w.message)] == []
