@@ -353,6 +353,18 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
     return failed_outcome(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
 
 
+#: seconds without any pair started before the batch says it is waiting for workers
+WAITING_LOG_S = 10.0
+
+
+def _n_workers(client: Any) -> int:
+    """Workers the scheduler knows (-1 when it cannot be asked)."""
+    try:
+        return len(client.nthreads())
+    except Exception:  # noqa: BLE001
+        return -1
+
+
 def _n_slots(client: Any) -> int:
     """Worker threads of the cluster (at least 1)."""
     try:
@@ -478,8 +490,13 @@ def dask_outcomes(
 
             _track_starts(starts, inflight)
             if (not waiting_logged and not any(job.started is not None for job in inflight.values())
-                    and time.monotonic() - min(j.submitted for j in inflight.values()) > 10):
-                logger.info("waiting for dask workers (%d threads known)", slots if slots > 1 else 0)
+                    and time.monotonic() - min(j.submitted for j in inflight.values()) > WAITING_LOG_S):
+                if _n_workers(client) == 0:  # a warning: under -q (cron) the batch would wait without a word
+                    logger.warning("no dask worker has joined %s yet: the batch waits for one (start workers, or "
+                                   "stop it with Ctrl-C: finished pairs are kept, --resume goes on)",
+                                   scheduler or "the local cluster")
+                else:
+                    logger.info("waiting for dask workers (%d threads known)", slots if slots > 1 else 0)
                 waiting_logged = True
             now = time.monotonic()
             for future, job in list(inflight.items()):

@@ -312,3 +312,37 @@ def test_ctrl_c_stops_a_dask_batch_without_worker_tracebacks(dataset, tmp_path, 
     done = subprocess.run(cmd + ["--resume"], env=subprocess_env, capture_output=True, text=True, timeout=180)
     assert done.returncode == 0, done.stderr
     assert sorted(r["pair_id"] for r in read_csv(out / "transforms.csv")[1]) == [f"p{i}" for i in range(6)]
+
+
+@pytest.mark.slow
+def test_a_scheduler_without_workers_is_said_then_the_batch_runs_once_one_joins(four_pairs, fast_config, tmp_path,
+                                                                               monkeypatch, caplog):
+    """``--scheduler`` with no worker (Slurm jobs not started yet, or gone): under ``-q`` the batch waited
+    ten minutes without a word. It warns, and goes on when a worker joins."""
+    import threading
+
+    monkeypatch.setattr(dask_executor, "WAITING_LOG_S", 0.5)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+        cluster = distributed.LocalCluster(n_workers=0, threads_per_worker=1, processes=True,
+                                           dashboard_address=None, silence_logs=logging.CRITICAL)
+    try:
+        def join_when_warned():  # a worker joins once the batch warned (or after 30 s: the test then fails)
+            for _ in range(300):
+                if "no dask worker has joined" in caplog.text:
+                    break
+                threading.Event().wait(0.1)
+            cluster.scale(1)
+
+        joiner = threading.Thread(target=join_when_warned, daemon=True)
+        joiner.start()
+        with caplog.at_level(logging.WARNING, logger="gctr_cli"):
+            summary = run_batch(four_pairs.specs(), fast_config, tmp_path / "out", workers=1,
+                                register_fn=fake_engine.register, executor="dask", scheduler=cluster.scheduler_address)
+        joiner.join(timeout=5)
+    finally:
+        cluster.close(timeout=10)
+    assert summary.n_pairs == summary.n_ok == len(four_pairs.rows)
+    warned = [r.getMessage() for r in caplog.records if "no dask worker" in r.getMessage()]
+    assert warned == [f"no dask worker has joined {cluster.scheduler_address} yet: the batch waits for one (start "
+                      "workers, or stop it with Ctrl-C: finished pairs are kept, --resume goes on)"]
