@@ -5,40 +5,38 @@ An executor for :func:`gctr_cli.batch.run_batch` (see :mod:`gctr_cli.executors`)
 complete; the batch process writes the outputs exactly as with the local pool (same files, same commit
 order, ``--resume``, lock).
 
-* **Cluster.** With a ``scheduler`` address (``tcp://HOST:8786``) it connects to a running cluster
-  (started by hand, by dask-jobqueue on Slurm/PBS/..., by dask-kubernetes, ...). Without one it starts a
-  ``LocalCluster`` of ``n_workers`` processes with one thread each, which it closes at the end.
-* **Same work, same results.** Each task calls :func:`gctr_cli.pair.run_pair` with the seed derived
-  from the config seed and the pair id, as a local worker does, with native thread pools capped to one
-  thread (:func:`_single_threaded`: ``OMP_NUM_THREADS`` and friends for pools created later,
-  ``threadpoolctl`` for loaded BLAS/OpenMP, Open3D's ``set_max_threads(1)``): the transforms equal the
-  local pool's bit for bit. LocalCluster workers get the variables before they start, and ignore Ctrl-C.
-* **Bounded submission.** At most twice as many tasks are in flight as the cluster has worker threads
-  (at least one): one running and one waiting per thread, so memory stays bounded for any manifest size,
-  and workers added to an adaptive cluster are used as they join. A worker plugin
-  (:class:`GctrWorkerSetup`) prepares every worker, also those that join later: one-thread native
-  pools and the imports a pair needs, so import time does not count against the first pair's limit.
-* **Failures.** A task whose worker dies (segfault, out-of-memory kill by the nanny) ends in
-  ``KilledWorker`` and gives a failed row ``worker died (...)``. The LocalCluster is started with
-  ``distributed.scheduler.allowed-failures = 0`` so that, as with the local pool, the first death
-  fails the pair; an external scheduler keeps its own setting (default 3 retries on other workers,
-  which also covers preempted nodes); a pair whose result dies with a worker another pair crashed runs
-  again. Any other exception of a task gives a failed row naming it.
-* **Time limit** (best effort): a pair running longer than ``batch.time_limit_s`` (measured from when
-  its task starts executing on a worker, which the task announces with a dask event; waiting for a
-  worker does not count) gets the failed row ``timed out after N s``; its future is cancelled and its
-  worker process replaced (a Python thread cannot be stopped otherwise): killed at once in our own
-  LocalCluster (its nanny starts a fresh one), restarted through its nanny on an external cluster. A
-  worker without a nanny keeps computing until the pair ends.
-* **Lost scheduler.** If the connection to the scheduler is lost (the scheduler process died, the
-  network went away), the batch stops with :class:`~gctr_cli.errors.ExecutorLost` (one line from the
-  CLI, exit 2); the pairs in flight get no row, the finished pairs are saved and ``--resume`` against
-  a running scheduler finishes with the same transforms.
+* **Cluster.** With a ``scheduler`` address (``tcp://HOST:8786``) it connects to a running cluster (started by hand,
+  by dask-jobqueue on Slurm/PBS/..., by dask-kubernetes, ...). Without one it starts a ``LocalCluster`` of
+  ``n_workers`` processes with one thread each, which it closes at the end.
+* **Same work, same results.** Each task calls :func:`gctr_cli.pair.run_pair` with the seed derived from the config
+  seed and the pair id, as a local worker does, with native thread pools capped to one thread
+  (:func:`_single_threaded`: ``OMP_NUM_THREADS`` and friends for pools created later, ``threadpoolctl`` for loaded
+  BLAS/OpenMP, Open3D's ``set_max_threads(1)``): the transforms equal the local pool's bit for bit. LocalCluster
+  workers get the variables before they start, and ignore Ctrl-C.
+* **Bounded submission.** At most twice as many tasks are in flight as the cluster has worker threads (at least
+  one): one running and one waiting per thread, so memory stays bounded for any manifest size, and workers added to
+  an adaptive cluster are used as they join. A worker plugin (:class:`GctrWorkerSetup`) prepares every worker, also
+  those that join later: one-thread native pools and the imports a pair needs, so import time does not count against
+  the first pair's limit.
+* **Failures.** A task whose worker dies (segfault, out-of-memory kill by the nanny) ends in ``KilledWorker`` and
+  gives a failed row ``worker died (...)``. The LocalCluster is started with
+  ``distributed.scheduler.allowed-failures = 0`` so that, as with the local pool, the first death fails the pair; an
+  external scheduler keeps its own setting (default 3 retries on other workers, which also covers preempted nodes);
+  a pair whose result dies with a worker another pair crashed runs again. Any other exception of a task gives a
+  failed row naming it.
+* **Time limit** (best effort): a pair running longer than ``batch.time_limit_s`` (measured from when its task
+  starts executing on a worker, which the task announces with a dask event; waiting for a worker does not count)
+  gets the failed row ``timed out after N s``; its future is cancelled and its worker process replaced (a Python
+  thread cannot be stopped otherwise): killed at once in our own LocalCluster (its nanny starts a fresh one),
+  restarted through its nanny on an external cluster. A worker without a nanny keeps computing until the pair ends.
+* **Lost scheduler.** If the connection to the scheduler is lost (the scheduler process died, the network went
+  away), the batch stops with :class:`~gctr_cli.errors.ExecutorLost` (one line from the CLI, exit 2); the pairs in
+  flight get no row, the finished pairs are saved and ``--resume`` against a running scheduler finishes with the
+  same transforms.
 
-Input paths in the manifest are resolved to absolute paths by the client (relative ones against the
-manifest's folder) and must be readable at those same paths on every worker (shared filesystem). The
-outputs are written by the batch process only; snapshots travel back inside the outcomes, so the
-output folder need not be shared.
+Input paths in the manifest are resolved to absolute paths by the client (relative ones against the manifest's
+folder) and must be readable at those same paths on every worker (shared filesystem). The outputs are written by the
+batch process only; snapshots travel back inside the outcomes, so the output folder need not be shared.
 """
 
 from __future__ import annotations
@@ -73,21 +71,18 @@ logger = logging.getLogger(__name__)
 __all__ = ["check_available", "dask_outcomes"]
 
 INSTALL_HINT = "pip install 'gctr-cli[dask]'"
-#: name of the worker plugin (re-registering replaces it)
-PLUGIN_NAME = "gctr-worker-setup"
+PLUGIN_NAME = "gctr-worker-setup"  #: name of the worker plugin (re-registering replaces it)
 #: a task lost with a worker killed by gctr (time limit) or by another pair is resubmitted at most this often
 MAX_RESUBMITS = 2
-#: seconds to wait for the scheduler when connecting
-CONNECT_TIMEOUT_S = 30.0
-#: the loop wakes up at least this often (new workers, time limits, lost scheduler)
-POLL_S = 0.5
+CONNECT_TIMEOUT_S = 30.0  #: seconds to wait for the scheduler when connecting
+POLL_S = 0.5  #: the loop wakes up at least this often (new workers, time limits, lost scheduler)
+WAITING_LOG_S = 10.0  #: seconds with no pair started before the batch says it waits for workers
 #: tasks in flight per worker thread: one running, one queued at the scheduler, so a worker starts its
 #: next pair while the batch process commits the last one (time limits count from a task's start)
 IN_FLIGHT_PER_SLOT = 2
 #: seconds between two looks at the cluster's number of worker threads (adaptive clusters grow)
 SLOTS_REFRESH_S = 2.0
-#: seconds given to a nanny to restart a worker whose pair timed out
-RESTART_TIMEOUT_S = 60.0
+RESTART_TIMEOUT_S = 60.0  #: seconds given to a nanny to restart a worker whose pair timed out
 
 
 def check_available() -> None:
@@ -353,22 +348,10 @@ def _outcome_of(future: Any, job: _InFlight) -> PairOutcome:
     return failed_outcome(job.spec, job.seed, f"task {status} by the dask cluster", "worker", job.runtime())
 
 
-#: seconds without any pair started before the batch says it is waiting for workers
-WAITING_LOG_S = 10.0
-
-
-def _n_workers(client: Any) -> int:
-    """Workers the scheduler knows (-1 when it cannot be asked)."""
-    try:
-        return len(client.nthreads())
-    except Exception:  # noqa: BLE001
-        return -1
-
-
 def _n_slots(client: Any) -> int:
-    """Worker threads of the cluster (at least 1)."""
+    """Worker threads of the cluster (0 without a worker; 1 when the scheduler cannot be asked)."""
     try:
-        return max(1, sum(int(n) for n in client.nthreads().values()))
+        return sum(int(n) for n in client.nthreads().values())
     except Exception:  # noqa: BLE001
         return 1
 
@@ -443,7 +426,7 @@ def dask_outcomes(
             _check_connected(client, scheduler, len(inflight))
             if time.monotonic() >= slots_checked + SLOTS_REFRESH_S:  # an RPC: not once per pair
                 slots, slots_checked = _n_slots(client), time.monotonic()
-            while pending and len(inflight) < IN_FLIGHT_PER_SLOT * slots:
+            while pending and len(inflight) < IN_FLIGHT_PER_SLOT * max(1, slots):
                 spec, seed = pending[0]
                 n_submitted += 1  # unique keys, also for a resubmitted pair
                 try:
@@ -491,12 +474,12 @@ def dask_outcomes(
             _track_starts(starts, inflight)
             if (not waiting_logged and not any(job.started is not None for job in inflight.values())
                     and time.monotonic() - min(j.submitted for j in inflight.values()) > WAITING_LOG_S):
-                if _n_workers(client) == 0:  # a warning: under -q (cron) the batch would wait without a word
+                if slots:
+                    logger.info("waiting for dask workers (%d threads known)", slots)
+                else:  # a warning: under -q (cron) the batch would wait without a word
                     logger.warning("no dask worker has joined %s yet: the batch waits for one (start workers, or "
                                    "stop it with Ctrl-C: finished pairs are kept, --resume goes on)",
                                    scheduler or "the local cluster")
-                else:
-                    logger.info("waiting for dask workers (%d threads known)", slots if slots > 1 else 0)
                 waiting_logged = True
             now = time.monotonic()
             for future, job in list(inflight.items()):
