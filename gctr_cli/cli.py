@@ -312,8 +312,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     if output is not None and aligned is not None and os.path.abspath(output) == os.path.abspath(aligned):
         _die(f"{output}: given as both -o and --aligned: choose two files")
     if output is None and sys.stdout is None:  # closed (>&-): the printed matrix would be lost; say so first
-        _die("cannot print the result (stdout is closed), and without -o FILE the printed matrix is its only "
-             "copy: pass -o FILE to write it to a file")
+        _die_unprinted("the result", "stdout is closed")
     if aligned is not None:
         _check_output_cloud(aligned)
     config = _load_config(config_path)
@@ -369,9 +368,6 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
 def _print_report(text: str, only_copy: bool = False) -> None:
     """``text`` on stdout, after the command's files are written (:func:`_stdout_may_fail`; ``only_copy``:
     the text holds a matrix written nowhere else)."""
-    if only_copy and sys.stdout is None:  # closed (>&-): nothing can be printed
-        _die("cannot print the result (stdout is closed), and without -o FILE the printed matrix is its only "
-             "copy: pass -o FILE to write it to a file")
     with _stdout_may_fail("the result", only_copy=only_copy):
         click.echo(text, nl=False)
 
@@ -392,10 +388,15 @@ def _stdout_may_fail(what: str, results: Path | None = None, only_copy: bool = F
         if isinstance(exc, BrokenPipeError):
             return
         if only_copy:
-            _die(f"cannot print {what} ({exc.strerror or exc}), and without -o FILE the printed matrix is its "
-                 "only copy: pass -o FILE to write it to a file")
+            _die_unprinted(what, str(exc.strerror or exc))
         where = f"; the results are in {results}" if results is not None else ""
         logger.warning("cannot print %s (%s)%s", what, exc.strerror or exc, where)
+
+
+def _die_unprinted(what: str, problem: str) -> NoReturn:
+    """Exit 2: ``register`` without ``-o`` could not print ``what``, the only copy of its matrix."""
+    _die(f"cannot print {what} ({problem}), and without -o FILE the printed matrix is its only copy: pass -o FILE "
+         "to write it to a file")
 
 
 def _stdout_to_devnull() -> None:

@@ -245,12 +245,16 @@ def check_case_collisions(outdir: Path, pair_ids: Iterable[str]) -> None:
     """Raise :class:`BatchError` when two pair ids differ only in case and ``outdir`` does not tell such
     names apart: their matrices (``matrices/A.txt``, ``matrices/a.txt``) would overwrite each other."""
     first: dict[str, str] = {}
+    clashes = []
     for pid in pair_ids:
         other = first.setdefault(pid.lower(), pid)
-        if other != pid and case_insensitive(outdir):
-            raise BatchError(f"pair ids {other!r} and {pid!r} differ only in case, and the filesystem of {outdir} "
-                             f"does not tell such file names apart: {MATRICES_DIR}/{pid}.txt would overwrite "
-                             f"{MATRICES_DIR}/{other}.txt; rename one of them (nothing was run)")
+        if other != pid:
+            clashes.append((other, pid))
+    if clashes and case_insensitive(outdir):  # probed once, and only when such ids occur
+        other, pid = clashes[0]
+        raise BatchError(f"pair ids {other!r} and {pid!r} differ only in case, and the filesystem of {outdir} "
+                         f"does not tell such file names apart: {MATRICES_DIR}/{pid}.txt would overwrite "
+                         f"{MATRICES_DIR}/{other}.txt; rename one of them (nothing was run)")
 
 
 def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str] | None = None,

@@ -155,13 +155,11 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     pts = np.concatenate(parts) if parts else np.empty((0, 3))
     if len(pts) == 0:
         raise PointCloudError(f"{path}: contains no points (no lines with numeric x y z columns)")
-    if state.get("count") and state["count"][0] > len(pts):
+    if state.get("count") and state["count"][0] != len(pts):
         declared, lineno, sections = state["count"]
         what = f"line {lineno} declares" if sections == 1 else f"its {sections} point-count lines declare"
-        raise PointCloudError(f"{path}: {what} {declared} points but the file has {len(pts)} (truncated?)")
-    if state.get("count") and state["count"][0] < len(pts):
-        declared, lineno, sections = state["count"]
-        what = f"line {lineno} declares" if sections == 1 else f"its {sections} point-count lines declare"
+        if declared > len(pts):
+            raise PointCloudError(f"{path}: {what} {declared} points but the file has {len(pts)} (truncated?)")
         logger.warning("%s: %s %d points but the file has %d (all %d read)", path, what, declared, len(pts),
                        len(pts))
     return PointCloud(pts, {}, "xyz")
