@@ -30,13 +30,19 @@ BLOCK = 1 << 22
 _NUMERIC_TEXT = frozenset(b"0123456789+-.eE \t\r\n")
 
 
+def _peek(fh, n: int = 256) -> bytes:
+    """The first ``n`` bytes from ``fh``'s position, which is left where it was."""
+    start = fh.tell()
+    data = fh.read(n)
+    fh.seek(start)
+    return data
+
+
 def numeric_text(fh) -> bool:
     """Whether the data section that starts at ``fh``'s position (left where it was) is numbers written
     as text: the bytes of binary numbers are almost never all digits, signs, points and blanks, so a
     header that says binary over such data was written for another format."""
-    start = fh.tell()
-    data = fh.read(256)
-    fh.seek(start)
+    data = _peek(fh)
     return len(data) >= 16 and b"\n" in data and all(b in _NUMERIC_TEXT for b in data)
 
 
@@ -45,9 +51,7 @@ def binary_data(fh) -> bool:
     or more than a tenth of its first 256 bytes neither printable ASCII nor blanks (text numbers, even
     with a stray UTF-8 comment, stay well below), so a header that says ascii over it was written for
     another format."""
-    start = fh.tell()
-    data = fh.read(256)
-    fh.seek(start)
+    data = _peek(fh)
     odd = sum(1 for b in data if not (32 <= b < 127 or b in b"\t\r\n"))
     return len(data) >= 16 and (b"\x00" in data or odd > len(data) // 10)
 
