@@ -217,6 +217,11 @@ class VerdictConfig(_Strict):
         (0.1, 0.2),
         description="an answer short of confidence 1 is also tried slid both ways by these shares of the smaller "
                     "cloud along the direction its surface contact constrains least, refined; [] = off")
+    slide_free_ratio: float = Field(
+        0.05, ge=0, lt=1,
+        description="... and so is a confident answer whose contact leaves a direction nearly free: the smallest "
+                    "eigenvalue of the contact normals' scatter below this share of the largest (a cylinder's "
+                    "axis, the line where two walls meet); 0 = only answers short of confidence 1")
 
 
 class EngineConfig(_Strict):

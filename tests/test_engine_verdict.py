@@ -395,6 +395,29 @@ def test_symmetric_shape_cropped_is_ambiguous():
     assert res.confidence < 0.1
 
 
+def _cylinder(n: int, rng: np.random.Generator, turn: tuple[float, float], height: tuple[float, float]) -> np.ndarray:
+    theta, z = rng.uniform(*np.radians(turn), n), rng.uniform(*height, n)
+    return np.column_stack([0.1 * np.cos(theta), 0.1 * np.sin(theta), z]) + rng.normal(scale=0.0005, size=(n, 3))
+
+
+def test_a_featureless_cylinder_that_can_slide_along_its_axis_is_ambiguous():
+    """A 200-degree arc of a plain cylinder (z 0-0.4) against a 270-degree arc of it (z 0.1-0.6): any
+    slide along the axis fits as well, and the search's best one (the source pushed inside the target)
+    came back ok at confidence 1, 18 degrees and a quarter of the target off. A confident answer whose
+    contact leaves a direction free is slid along it too (``verdict.slide_free_ratio``), finds the
+    equally good rival and is refused."""
+    rng = np.random.default_rng(11)
+    src = _cylinder(20000, rng, (0.0, 200.0), (0.0, 0.4))
+    tgt = _cylinder(8000, rng, (-40.0, 230.0), (0.1, 0.6))
+    move = np.eye(4)
+    move[:3, :3] = 1.7 * Rotation.random(random_state=5).as_matrix()
+    move[:3, 3] = [0.3, -0.2, 0.5]
+    res = register(src @ move[:3, :3].T + move[:3, 3], tgt, cfg_default(), seed=6)  # seed 6 settled at 1.0
+    assert res.status == "failed", (res.confidence, res.message)
+    assert res.message.startswith("ambiguous"), res.message
+    assert res.confidence < 0.1
+
+
 def test_threshold_is_a_config_key():
     """A pair that passes at the default threshold is refused at a strict one, with the
     low-confidence message naming the threshold; the failed result still carries the best transform.
@@ -654,12 +677,13 @@ def test_an_answer_is_not_refused_without_the_search_from_the_halves(monkeypatch
 
 def test_an_answer_is_slid_along_the_direction_its_contact_leaves_free():
     """A floor (z = 0) and a wall (x = 0) pin z and x; the answer is slid both ways along y only,
-    by each configured step times the smaller cloud's size."""
+    by each configured step times the smaller cloud's size, and the contact says y is free (ratio 0);
+    a third wall (y = 0) pins y as well."""
     from types import SimpleNamespace
 
     from scipy.spatial import cKDTree
 
-    from gctr_cli.engine.decide import slid_transforms
+    from gctr_cli.engine.decide import contact_freedom, slid_transforms
 
     g = np.linspace(0.0, 1.0, 21)
     a, b = (m.ravel() for m in np.meshgrid(g, g))
@@ -671,10 +695,20 @@ def test_an_answer_is_slid_along_the_direction_its_contact_leaves_free():
     T = np.diag([0.5, 0.5, 0.5, 1.0])  # scale 0.5: the smaller cloud's size is 0.5
     T[:3, 3] = [0.1, 0.2, 0.0]
     moved_back = SimpleNamespace(points=(points - T[:3, 3]) / 0.5)  # the source lands exactly on the target
-    shifted = slid_transforms(T, moved_back, cloud, 0.01, (0.1, 0.2))
+    free = contact_freedom(T, moved_back, cloud, 0.01)
+    assert free is not None
+    direction, ratio = free
+    assert abs(direction @ [0.0, 1.0, 0.0]) == pytest.approx(1.0) and ratio == pytest.approx(0.0, abs=1e-12)
+    shifted = slid_transforms(T, direction, (0.1, 0.2))
     steps = sorted(float((S[:3, 3] - T[:3, 3]) @ [0.0, 1.0, 0.0]) for S in shifted)
     assert steps == pytest.approx([-0.1, -0.05, 0.05, 0.1])
     for S in shifted:
         assert np.allclose(S[:3, :3], T[:3, :3])
         assert abs(S[0, 3] - T[0, 3]) < 1e-9 and abs(S[2, 3] - T[2, 3]) < 1e-9
-    assert slid_transforms(T, SimpleNamespace(points=points + 5.0), cloud, 0.01, (0.1,)) == []
+    assert contact_freedom(T, SimpleNamespace(points=points + 5.0), cloud, 0.01) is None
+    back_wall = np.column_stack([a, np.zeros_like(a), b])
+    corner = np.vstack([points, back_wall])
+    corner_normals = np.vstack([normals, np.tile([0.0, 1.0, 0.0], (len(back_wall), 1))])
+    room = SimpleNamespace(points=corner, normals=corner_normals, tree=cKDTree(corner))
+    free = contact_freedom(T, SimpleNamespace(points=(corner - T[:3, 3]) / 0.5), room, 0.01)
+    assert free is not None and free[1] > 0.99  # three walls: no direction is freer

@@ -156,15 +156,16 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     refined = [_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists]
     height_map = functools.cache(lambda: target_heights(tgt_ref, test, cfg))  # built once, if the relief is asked
     T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test, height_map)
-    if v.slide_steps and verdict.confidence < 1.0:
+    free = (contact_freedom(T_answer, src_ref, tgt_ref, test.distance)
+            if v.slide_steps and (verdict.confidence < 1.0 or v.slide_free_ratio > 0) else None)
+    if free is not None and (verdict.confidence < 1.0 or free[1] < v.slide_free_ratio):
         # An answer that is not clearly ahead: try it slid both ways along the direction its surface
         # contact constrains least (a wall or a floor lets a low-overlap pair slide along it), refined.
         # Those that end at a different alignment (a rival by the shared-data test) join the finalists
         # and the verdict chooses again; those that return to the answer are dropped, so that the
         # slides never just polish the answer's own score.
         slid = [(T, a) for T, a in (_refine(T_s, src_ref, tgt_ref, cfg, bounds_n, timer, test)
-                                    for T_s in slid_transforms(T_answer, src_ref, tgt_ref, test.distance,
-                                                               v.slide_steps))
+                                    for T_s in slid_transforms(T_answer, free[0], v.slide_steps))
                 if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
         if slid:
             T_answer, verdict, _ = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test,
@@ -172,17 +173,22 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     return T_answer, verdict
 
 
-def slid_transforms(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, distance: float,
-                    steps: tuple[float, ...]) -> list[np.ndarray]:
-    """``T`` shifted both ways by each of ``steps`` (× the smaller cloud's size) along the translation
-    its point-to-plane contact constrains least: the eigenvector of the smallest eigenvalue of the sum
-    of ``n nᵀ`` over the target normals of the moved source points within ``distance`` of the target.
-    Empty when fewer than three points are in contact."""
+def contact_freedom(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
+                    distance: float) -> tuple[np.ndarray, float] | None:
+    """The translation along which ``T``'s point-to-plane contact is least constrained and how free it is:
+    the eigenvector of the smallest eigenvalue of the sum of ``n nᵀ`` over the target normals of the moved
+    source points within ``distance`` of the target, and that eigenvalue over the largest (near 0 along a
+    cylinder's axis or the line where two walls meet). None when fewer than three points are in contact."""
     d, j = tgt_ref.tree.query(apply(T, src_ref.points), distance_upper_bound=distance)
     normals = tgt_ref.normals[j[np.isfinite(d)]]
     if len(normals) < 3:
-        return []
-    direction = np.linalg.eigh(normals.T @ normals)[1][:, 0]
+        return None
+    values, vectors = np.linalg.eigh(normals.T @ normals)
+    return vectors[:, 0], float(values[0] / values[-1]) if values[-1] > 0 else 0.0
+
+
+def slid_transforms(T: np.ndarray, direction: np.ndarray, steps: tuple[float, ...]) -> list[np.ndarray]:
+    """``T`` shifted both ways by each of ``steps`` (× the smaller cloud's size) along ``direction``."""
     size = smaller_cloud(similarity_scale(T))
     shifted = []
     for step in steps:
