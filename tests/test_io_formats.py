@@ -110,6 +110,82 @@ def test_laz_lying_point_count_and_corrupt_data(tmp_path):
     assert "Error" not in msg and "Exception" not in msg, msg
 
 
+WKT = ('PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+       'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
+       'PARAMETER["central_meridian",15],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],'
+       'UNIT["metre",1],AUTHORITY["EPSG","32633"]]')
+#: a GeoTIFF key directory (version 1.1.0, one key): ProjectedCSTypeGeoKey = EPSG 32633
+GEOKEYS = np.array([1, 1, 0, 1, 3072, 0, 1, 32633], dtype="<u2").tobytes()
+
+
+def riegl_las(path: Path, n: int = 3000, extra_vlrs=()):
+    """LAS 1.4 point format 6 as a survey scanner writes it: a WKT CRS record, adjusted standard GPS
+    time, system identifier, file source id, a private VLR and EVLR; returns the LasData written."""
+    rng = np.random.default_rng(4)
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.scales, hdr.offsets = np.array([0.001] * 3), UTM.copy()
+    hdr.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+    hdr.global_encoding.wkt = True
+    hdr.system_identifier = "RIEGL VQ-1560"
+    hdr.file_source_id = 17
+    hdr.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(WKT))
+    hdr.vlrs.append(laspy.VLR("acme", 7, "flight line", b"line 12"))
+    hdr.vlrs.extend(extra_vlrs)
+    # 76,800 bytes: too long for a VLR
+    hdr.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("acme", 8, "trajectory", bytes(range(256)) * 300)])
+    las = laspy.LasData(hdr)
+    las.X, las.Y = rng.integers(-(10**6), 10**6, n), rng.integers(-(10**6), 10**6, n)
+    las.Z = rng.integers(0, 10**5, n)
+    las.gps_time = 3.0e8 + np.arange(n) * 1e-5
+    las.write(path)
+    return las
+
+
+@pytest.mark.parametrize("ext", [".las", ".laz"])
+@pytest.mark.parametrize("moved", [False, True])
+def test_las_output_keeps_the_source_crs_gps_time_type_and_ids(tmp_path, ext, moved):
+    """Even an identity apply wrote GPS time type 0, no WKT bit, no records, system id 'OTHER': readers
+    then misread adjusted standard GPS time and the tile had no CRS."""
+    src = riegl_las(tmp_path / f"src{ext}")
+    T = to_matrix(1.0, rotation([0, 0, 1], 3), [4.0, -2.0, 0.5]) if moved else np.eye(4)
+    write_aligned(tmp_path / f"src{ext}", T, tmp_path / f"out{ext}")
+    out = laspy.read(tmp_path / f"out{ext}")
+    assert (str(out.header.version), out.header.point_format.id) == ("1.4", 6)
+    assert out.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    assert out.header.global_encoding.wkt
+    assert (out.header.system_identifier, out.header.file_source_id) == ("RIEGL VQ-1560", 17)
+    assert [(v.user_id, v.record_id, bytes(v.record_data_bytes())) for v in out.header.vlrs] == [
+        ("LASF_Projection", 2112, WKT.encode() + b"\0"), ("acme", 7, b"line 12")]
+    assert [(v.user_id, v.record_id, v.record_data) for v in out.evlrs] == [("acme", 8, bytes(range(256)) * 300)]
+    np.testing.assert_array_equal(out.gps_time, src.gps_time)
+    np.testing.assert_allclose(out.xyz, apply(T, np.asarray(src.xyz)), rtol=0, atol=1e-3)
+
+
+def test_las_1_2_keeps_version_format_and_geokeys_drops_a_stale_index_and_other_formats_warn(tmp_path, caplog):
+    """A LAS 1.2 format 3 tile stays LAS 1.2 format 3 with its GeoTIFF keys; a COPC index record, which
+    would describe the old file's point order, is left out with a warning; a PLY output says that the CRS
+    is not kept."""
+    _expected, _ = utm_las(tmp_path / "in.las", n=500)
+    las = laspy.read(tmp_path / "in.las")
+    las.header.vlrs.append(laspy.VLR("LASF_Projection", 34735, "GeoKeyDirectoryTag", GEOKEYS))
+    las.header.vlrs.append(laspy.VLR("copc", 1, "copc info", bytes(160)))
+    las.header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+    las.write(tmp_path / "geo.las")
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_aligned(tmp_path / "geo.las", np.eye(4), tmp_path / "out.las")
+    out = laspy.read(tmp_path / "out.las")
+    assert (str(out.header.version), out.header.point_format.id) == ("1.2", 3)
+    assert out.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    assert [(v.user_id, v.record_id, bytes(v.record_data_bytes())) for v in out.header.vlrs] == [
+        ("LASF_Projection", 34735, GEOKEYS)]
+    np.testing.assert_array_equal(out.red, las.red)
+    write_aligned(tmp_path / "geo.las", np.eye(4), tmp_path / "out.ply")
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'out.las'}: not kept from the LAS source: the COPC info record",
+        f"{tmp_path / 'out.ply'}: the coordinate reference system of the LAS source (GeoTIFF keys, EPSG 32633) "
+        "is not kept: PLY files cannot hold it"]
+
+
 # ----------------------------------------------------------------------------------------------------
 # E57
 # ----------------------------------------------------------------------------------------------------

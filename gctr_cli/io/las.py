@@ -16,6 +16,7 @@ import io as _stdio
 import logging
 import math
 import os
+import re
 import signal
 import struct
 import tempfile
@@ -26,9 +27,9 @@ from typing import Any
 import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, integer_misfit
-from gctr_cli.io.errors import PointCloudError, clean
+from gctr_cli.io.errors import PointCloudError, clean, quote
 
-__all__ = ["read_las", "las_bytes"]
+__all__ = ["crs_description", "las_bytes", "read_las"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -213,7 +214,8 @@ def _read_points(path: Path, fh, count: int, compressed: bool, attributes: bool)
         raise PointCloudError(f"{path}: truncated: the header declares {count} points but only {got} could be read")
     out = {n: (np.concatenate(v) if v else np.empty(0)) for n, v in attrs.items()}
     out = {n: v for n, v in out.items() if v.ndim == 1 and len(v) == count}
-    meta = {"las_point_format": int(hdr.point_format.id), "las_version": str(hdr.version)}
+    # the whole header: a LAS/LAZ writer carries its CRS records, encoding bits and ids (:func:`las_bytes`)
+    meta = {"las_point_format": int(hdr.point_format.id), "las_version": str(hdr.version), "las_header": hdr}
     return PointCloud(pts, out, "las", meta)
 
 
@@ -256,10 +258,110 @@ def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str) -> np.nd
     return values
 
 
+#: (user id, record id) of the records laspy writes itself from the new file's layout (extra bytes, LASzip)
+_REBUILT = {("LASF_Spec", 4), ("laszip encoded", 22204)}
+#: records that index the source file's point layout or hold data beside the points: wrong or lost once
+#: the points are rewritten, so not copied
+_STALE = {("copc", 1): "the COPC info record", ("copc", 1000): "the COPC hierarchy record",
+          ("LAStools", 30): "the LAStools spatial index", ("LASF_Spec", 65535): "the waveform data"}
+#: record ids of user id ``LASF_Projection`` that hold a coordinate reference system
+_CRS_RECORDS = {34735, 34736, 34737, 2111, 2112}
+
+
+def _record_bytes(vlr: Any) -> bytes:
+    return bytes(vlr.record_data_bytes())
+
+
+def crs_description(header: Any) -> str | None:
+    """A short name of the coordinate reference system the LAS ``header``'s records hold (``WKT 'WGS 84 /
+    UTM zone 33N'``, ``GeoTIFF keys, EPSG 32633``), or None when it has no CRS record; for messages."""
+    records = [v for v in [*header.vlrs, *(header.evlrs or [])]
+               if v.user_id == "LASF_Projection" and v.record_id in _CRS_RECORDS]
+    if not records:
+        return None
+    wkt = next((v for v in records if v.record_id == 2112), None)
+    if wkt is not None:
+        text = _record_bytes(wkt).decode("latin-1").strip("\0 ")
+        name = re.match(r'\s*\w+\s*\[\s*"([^"]*)"', text)
+        return f"WKT {quote(name.group(1), 60)}" if name else "WKT"
+    keys = next((v for v in records if v.record_id == 34735), None)
+    if keys is not None:
+        raw = _record_bytes(keys)
+        # rows of 4 shorts: the directory header, then entries (key id, location, count, value); location
+        # 0: the value itself
+        shorts = np.frombuffer(raw[: len(raw) // 8 * 8], dtype="<u2").reshape(-1, 4)
+        for entry in shorts[1:]:
+            if entry[0] in (3072, 2048) and entry[1] == 0 and 0 < entry[3] < 32767:
+                return f"GeoTIFF keys, EPSG {int(entry[3])}"
+    return "GeoTIFF keys"
+
+
+def _copyable_records(records: Any, extended: bool, dropped: list[str]) -> list[Any]:
+    """The ``records`` (VLRs, or EVLRs with ``extended``) a new file can carry, as raw laspy VLRs with the
+    bytes read (no re-encoding by laspy's record classes); what is left out is added to ``dropped``."""
+    import laspy
+    from laspy.vlrs.vlrlist import VLRList
+
+    kept = []
+    for v in records or ():
+        key = (v.user_id, v.record_id)
+        if key in _REBUILT:
+            continue
+        if key in _STALE:
+            dropped.append(_STALE[key])
+            continue
+        try:
+            raw = laspy.VLR(v.user_id, v.record_id, v.description, _record_bytes(v))
+            VLRList([raw]).write_to(_stdio.BytesIO(), as_extended=extended)
+        except Exception as exc:  # laspy's text is not for users
+            logger.debug("record %r %s cannot be written", v.user_id, v.record_id, exc_info=exc)
+            dropped.append(f"record {quote(v.user_id, 20)} {v.record_id} (laspy cannot write it)")
+            continue
+        kept.append(raw)
+    return kept
+
+
+def _carry_header(header: Any, source: Any, where: str) -> None:
+    """Copy into the new ``header`` what the ``source`` LAS header says about the data: every VLR and EVLR
+    (the coordinate reference system above all), the global-encoding bits (GPS time type, WKT, synthetic
+    return numbers), the system identifier, file source id and project GUID.
+
+    The CRS records are the *source's*: the matrix puts the source into the target's frame, and a
+    registration within one georeferenced frame (the usual case: scans of one project, tiles of one
+    survey) keeps that frame's CRS. Records laspy writes itself (extra bytes, LASzip) are rebuilt; those
+    that index the source's point layout (COPC, LAStools spatial index) or hold its waveform data would
+    be wrong in the new file and are left out, with one warning naming them."""
+    from laspy.header import GlobalEncoding
+    from laspy.vlrs.vlrlist import VLRList
+
+    dropped: list[str] = []
+    header.vlrs = VLRList(_copyable_records(source.vlrs, False, dropped))
+    evlrs = source.evlrs or []
+    if header.version.minor >= 4:
+        header.evlrs = VLRList(_copyable_records(evlrs, True, dropped)) or None
+    elif evlrs:  # pragma: no cover - only 1.4 sources have EVLRs, and they keep 1.4
+        dropped.append(f"{len(evlrs)} extended records (LAS {header.version} has none)")
+    encoding = int(source.global_encoding.value)
+    if encoding & GlobalEncoding.WAVEFORM_INTERNAL_MASK:
+        encoding &= ~GlobalEncoding.WAVEFORM_INTERNAL_MASK
+        if "the waveform data" not in dropped:
+            dropped.append("the waveform data")
+    header.global_encoding.value = encoding
+    header.system_identifier = source.system_identifier
+    header.file_source_id = source.file_source_id
+    header.uuid = source.uuid
+    if dropped:
+        logger.warning("%s: not kept from the LAS source: %s", where, ", ".join(dict.fromkeys(dropped)))
+
+
 def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> bytes:
-    """The bytes of a LAS 1.4 file (LAZ when ``compress``): point format 6, or 7 with colours, or the
-    source's format when the cloud came from LAS; attributes matching a standard dimension fill it
-    (8-bit colours are widened to LAS's 16 bits), other numeric attributes become extra bytes."""
+    """The bytes of a LAS file (LAZ when ``compress``).
+
+    From a LAS/LAZ source the file keeps the source's version and point format (unless the cloud has
+    colours the format lacks) and what its header says about the data (:func:`_carry_header`: CRS
+    records, GPS time type, system identifier ...). Otherwise it is LAS 1.4 point format 6, or 7 with
+    colours. Attributes matching a standard dimension fill it (8-bit colours are widened to LAS's 16
+    bits), other numeric attributes become extra bytes."""
     import laspy
 
     pts = np.asarray(cloud.points, dtype=np.float64)
@@ -270,10 +372,13 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     attrs = {k: v.astype(np.uint8) if v.dtype.kind == "b" else v.astype(np.float32) if v.dtype == np.float16 else v
              for k, v in attrs.items()}
     has_rgb = all(k in attrs for k in _RGB)
-    fmt = cloud.meta.get("las_point_format") if cloud.source_format == "las" else None
-    if fmt is None or fmt < 6:
-        fmt = 7 if has_rgb else 6
-    header = laspy.LasHeader(point_format=fmt, version="1.4")
+    source = cloud.meta.get("las_header") if cloud.source_format == "las" else None
+    if source is not None and (not has_rgb or "red" in source.point_format.dimension_names):
+        header = laspy.LasHeader(point_format=int(source.point_format.id), version=str(source.version))
+    else:
+        header = laspy.LasHeader(point_format=7 if has_rgb else 6, version="1.4")
+    if source is not None:
+        _carry_header(header, source, where)
     standard = set(header.point_format.dimension_names)
     extra = [k for k, v in attrs.items() if k not in standard and v.dtype.kind in "fiu" and k.isidentifier()]
     for k in sorted(attrs.keys() - standard - set(extra) - {"X", "Y", "Z", "x", "y", "z"}):
