@@ -186,6 +186,53 @@ def test_las_1_2_keeps_version_format_and_geokeys_drops_a_stale_index_and_other_
         "is not kept: PLY files cannot hold it"]
 
 
+def survey_laz(path: Path, n: int = 200_000, scales=(0.001, 0.001, 0.001)):
+    """A LAZ tile of a smooth surface (as airborne tiles compress) with millimetre scale and UTM offsets."""
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 500, (n, 2))
+    z = 20 * np.sin(xy[:, 0] / 50) + 10 * np.cos(xy[:, 1] / 70) + rng.normal(0, 0.05, n) + 120
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.scales, hdr.offsets = np.array(scales), np.array([500_000.0, 4_000_000.0, 0.0])
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = xy[:, 0] + 500_000, xy[:, 1] + 4_000_000, z
+    las.write(path)
+    return las
+
+
+def test_las_output_keeps_the_source_quantum_and_size(tmp_path):
+    """From a millimetre source, the writer chose 1e-7/1e-8 scales: an identity apply of a LAZ grew it
+    ~1.9-fold (12.3 -> 23.1 MB for 2M points) with digits the source never had. Now the source's scale
+    and offset are kept: the same integers, the same size."""
+    src = survey_laz(tmp_path / "tile.laz")
+    write_aligned(tmp_path / "tile.laz", np.eye(4), tmp_path / "same.laz")
+    out = laspy.read(tmp_path / "same.laz")
+    np.testing.assert_array_equal(out.header.scales, [0.001] * 3)
+    np.testing.assert_array_equal(out.header.offsets, [500_000.0, 4_000_000.0, 0.0])
+    for dim in ("X", "Y", "Z"):
+        np.testing.assert_array_equal(out[dim], src[dim])
+    size_in, size_out = (tmp_path / "tile.laz").stat().st_size, (tmp_path / "same.laz").stat().st_size
+    assert size_out < 1.02 * size_in, (size_in, size_out)
+
+
+@pytest.mark.parametrize("scale, shift, expected_scales", [
+    (1.0, [3.0, -4.0, 0.5], [0.01, 0.01, 0.001]),  # rigid: x and y mix x and y (1 cm), z stays z (1 mm)
+    (2.5, [3.0, -4.0, 0.5], [0.02, 0.02, 0.002]),  # 2.5 cm rounded down to 2 cm, 2.5 mm to 2 mm
+    (1.0, [3e7, 0.0, 0.0], [0.01, 0.01, 0.001]),  # x moved 30,000 km: the source's x offset no longer fits int32
+])
+def test_las_output_quantum_follows_the_transform_scale(tmp_path, scale, shift, expected_scales):
+    survey_laz(tmp_path / "tile.laz", n=5000, scales=(0.01, 0.01, 0.001))
+    T = to_matrix(scale, rotation([0, 0, 1], 30), shift)
+    moved = write_aligned(tmp_path / "tile.laz", T, tmp_path / "out.las")
+    out = laspy.read(tmp_path / "out.las")
+    np.testing.assert_array_equal(out.header.scales, expected_scales)
+    err = np.abs(np.asarray(out.xyz) - moved.points)
+    assert (err <= np.array(expected_scales) / 2 * (1 + 1e-6)).all(), err.max(axis=0)  # half a step
+    offsets = [500_000.0, 4_000_000.0, 0.0]  # the source's, where they fit
+    if shift[0] > 1e6:  # a whole number of 1000 steps below the minimum
+        offsets[0] = np.floor(moved.points[:, 0].min() / 10.0) * 10.0
+    np.testing.assert_array_equal(out.header.offsets, offsets)
+
+
 # ----------------------------------------------------------------------------------------------------
 # E57
 # ----------------------------------------------------------------------------------------------------

@@ -130,13 +130,14 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     Coordinates are written at full precision: float64 in PLY and PCD (binary little endian when
     ``binary``, else ASCII), ``%.17g`` in text files (``.pts`` starts with a point-count line), and
     in LAS/LAZ 1.4 with a power-of-ten scale that quantises each axis to at most span / 4e8 (2.5 µm on
-    a 1 km tile). Attributes are kept where the format allows: PLY and PCD keep every numeric attribute,
-    LAS fills its standard dimensions (intensity, classification, colours ...) and stores the others
-    as extra bytes, text files get one column per attribute after ``x y z``. A LAS/LAZ output of a LAS
-    source keeps the source's version, point format, CRS records and header ids
-    (:func:`gctr_cli.io.las.las_bytes`); any other output of it logs a warning when the source's CRS is
-    lost. Missing parent folders
-    are created; the write is atomic (temporary file in the same folder, then ``os.replace``).
+    a 1 km tile), or, for a cloud read from LAS/LAZ, with the source's scale (times the scale factor
+    of the transform since) and offset, which keeps every digit the source had. Attributes are kept
+    where the format allows: PLY and PCD keep every numeric attribute, LAS fills its standard dimensions
+    (intensity, classification, colours ...) and stores the others as extra bytes, text files get one
+    column per attribute after ``x y z``. A LAS/LAZ output of a LAS source keeps the source's version,
+    point format, CRS records and header ids (:func:`gctr_cli.io.las.las_bytes`); any other output of
+    it logs a warning when the source's CRS is lost. Missing parent folders are created; the write is
+    atomic (temporary file in the same folder, then ``os.replace``).
 
     Interoperability note: Open3D 0.20's legacy PCD reader silently returns zeros for ``SIZE 8``
     (double) fields in binary PCD files, but reads them exactly from ASCII ones. With ``open3d_pcd``, a

@@ -237,6 +237,52 @@ def _scale_offset(values: np.ndarray) -> tuple[float, float]:
     return scale, offset
 
 
+def _nice_scale(x: float) -> float:
+    """The largest 1, 2 or 5 × 10^k not above ``x`` (1 % slack: a registration's scale of 0.9999 keeps a
+    millimetre grid instead of halving it)."""
+    k = math.floor(math.log10(x))
+    for m in (10, 5, 2, 1):
+        v = m * 10.0**k if k >= 0 else m / 10.0**-k  # 1 / 1000, not 1 * 1e-3: the same double as 0.001
+        if v <= x * 1.01:
+            return v
+    return 10.0**k  # pragma: no cover - 1 × 10^k <= x
+
+
+def _fits_int32(values: np.ndarray, scale: float, offset: float) -> bool:
+    ints = np.round((values - offset) / scale)
+    return bool(ints.min() >= -(2**31) and ints.max() <= 2**31 - 1)
+
+
+def _source_scales_offsets(pts: np.ndarray, source: Any, transform: np.ndarray) -> list[tuple[float, float]]:
+    """Scale and offset per axis for a cloud read from the LAS ``source`` header and since moved by
+    ``transform``: its coordinates are no finer than the source's quantum times the transform's scale
+    factor, so that (rounded down to 1, 2 or 5 × 10^k; after a rotation, the finest of the source axes
+    an output axis mixes) keeps them without inventing digits, and the file stays as small as the
+    source. The offset is the source's when every coordinate fits in int32 with it (an identity apply
+    rewrites the same integers), else a multiple of 1000 steps below the axis's minimum; an axis that
+    still does not fit gets :func:`_scale_offset`'s."""
+    A = np.asarray(transform, dtype=np.float64)[:3, :3]
+    s = abs(float(np.linalg.det(A))) ** (1 / 3)
+    src_scales = np.abs(np.asarray(source.scales, dtype=np.float64))
+    reach = np.abs(A) > 1e-9 * s  # the source axes each output axis is made of
+    finest = s * np.where(reach, src_scales[None, :], np.inf).min(axis=1)
+    out = []
+    for j in range(3):
+        values = pts[:, j]
+        if not (s > 0 and math.isfinite(finest[j]) and finest[j] > 0):
+            out.append(_scale_offset(values))
+            continue
+        scale = _nice_scale(float(finest[j]))
+        step = 1000 * scale
+        for offset in (float(source.offsets[j]), math.floor(float(values.min()) / step) * step):
+            if _fits_int32(values, scale, offset):
+                out.append((scale, offset))
+                break
+        else:
+            out.append(_scale_offset(values))
+    return out
+
+
 def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str) -> np.ndarray | None:
     """``values`` as LAS dimension ``dim`` holds them, or None (with a warning naming the file
     ``where`` and the attribute) when they do not fit: laspy would wrap 70000 to 4464 and truncate
@@ -358,10 +404,11 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     """The bytes of a LAS file (LAZ when ``compress``).
 
     From a LAS/LAZ source the file keeps the source's version and point format (unless the cloud has
-    colours the format lacks) and what its header says about the data (:func:`_carry_header`: CRS
-    records, GPS time type, system identifier ...). Otherwise it is LAS 1.4 point format 6, or 7 with
-    colours. Attributes matching a standard dimension fill it (8-bit colours are widened to LAS's 16
-    bits), other numeric attributes become extra bytes."""
+    colours the format lacks), what its header says about the data (:func:`_carry_header`: CRS
+    records, GPS time type, system identifier ...) and its quantum (:func:`_source_scales_offsets`).
+    Otherwise it is LAS 1.4 point format 6, or 7 with colours, quantised by :func:`_scale_offset`.
+    Attributes matching a standard dimension fill it (8-bit colours are widened to LAS's 16 bits), other
+    numeric attributes become extra bytes."""
     import laspy
 
     pts = np.asarray(cloud.points, dtype=np.float64)
@@ -386,7 +433,12 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
                        "identifier)", where, k)
     if extra:
         header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=attrs[k].dtype) for k in extra])
-    so = [_scale_offset(pts[:, j]) if n else (0.001, 0.0) for j in range(3)]
+    if not n:
+        so = [(0.001, 0.0)] * 3
+    elif source is not None:
+        so = _source_scales_offsets(pts, source, cloud.meta.get("transform", np.eye(4)))
+    else:
+        so = [_scale_offset(pts[:, j]) for j in range(3)]
     header.scales = np.array([s for s, _ in so])
     header.offsets = np.array([o for _, o in so])
     las = laspy.LasData(header)
