@@ -362,6 +362,25 @@ def test_ascii_rows_beyond_the_declared_count_are_named(tmp_path, cloud, ext, ca
     assert f"{path}: 2 more data lines after the {len(cloud)}" in caplog.text
 
 
+def test_binary_pcd_records_beyond_the_declared_count_are_named(tmp_path, cloud, caplog):
+    """A binary PCD whose POINTS is below the records present was cut without a word, where the ASCII
+    reader warned; POINTS 0 said 'contains no points'."""
+    body = cloud.astype("<f4").tobytes()
+    header = ("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {0}\nHEIGHT 1\nPOINTS {0}\n"
+              "DATA binary\n")
+    path = tmp_path / "low.pcd"
+    path.write_bytes(header.format(150).encode() + body + b"\n")  # a stray newline is not a record
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        np.testing.assert_array_equal(load_point_cloud(path), cloud[:150].astype(np.float32))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: 50 more point records after the 150 points the header declares (ignored)"]
+    path.write_bytes(header.format(0).encode() + body)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert str(ei.value) == (f"{path}: the header declares 0 points but 200 point records follow (a writer that "
+                             "never filled in POINTS/WIDTH?)")
+
+
 def test_ply_non_numeric_ascii_value(tmp_path):
     path = tmp_path / "word.ply"
     rows = "\n".join(f"{i} {i * i} {i % 3}" for i in range(20)).replace("9 81", "9 abc")

@@ -91,6 +91,47 @@ def test_las_truncated_and_lying_headers_are_refused_before_allocating(tmp_path)
         load_point_cloud(tmp_path / "stub.las")
 
 
+@pytest.mark.parametrize("version, fmt", [("1.2", 3), ("1.4", 7)])
+def test_las_records_beyond_the_declared_count_are_named(tmp_path, caplog, version, fmt):
+    """A header count below the records present cut LAS files without a word (ASCII PLY/PCD warn); a
+    count of 0 said 'contains no points'. LAS 1.4 counts the records up to the first EVLR."""
+    expected, las = utm_las(tmp_path / "ok.las", n=5000, version=version, point_format=fmt)
+    if version == "1.4":  # an EVLR after the points is not a point record
+        las.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("acme", 1, "notes", bytes(300))])
+        las.write(tmp_path / "ok.las")
+    data = bytearray((tmp_path / "ok.las").read_bytes())
+    at, size = (247, 8) if version == "1.4" else (107, 4)  # the 64-bit count of LAS 1.4, else the legacy one
+    for count in (4000, 0):
+        data[at : at + size] = count.to_bytes(size, "little")
+        (tmp_path / f"n{count}.las").write_bytes(bytes(data))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    np.testing.assert_array_equal(load_point_cloud(tmp_path / "n4000.las"), expected[:4000])
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'n4000.las'}: 1000 more point records after the 4000 points the header declares (ignored)"]
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "n0.las")
+    assert str(ei.value) == (f"{tmp_path / 'n0.las'}: the header declares 0 points but 5000 point records follow "
+                             "(a writer that never filled in the point count?)")
+
+
+def test_laz_chunks_beyond_the_declared_count_are_named(tmp_path, caplog):
+    """LAZ chunks hold 50,000 points: the chunk table (a few bytes) shows a count short by more than a chunk;
+    a smaller shortfall is known only by decompressing, and is not told."""
+    expected, _ = utm_las(tmp_path / "ok.laz", n=120_000)
+    data = bytearray((tmp_path / "ok.laz").read_bytes())
+    for count in (40_000, 119_000):
+        data[107:111] = count.to_bytes(4, "little")
+        (tmp_path / f"n{count}.laz").write_bytes(bytes(data))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    np.testing.assert_array_equal(load_point_cloud(tmp_path / "n40000.laz"), expected[:40_000])
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'n40000.laz'}: at least 60001 more point records after the 40000 points the header declares "
+        "(ignored)"]
+    caplog.clear()
+    assert len(load_point_cloud(tmp_path / "n119000.laz")) == 119_000
+    assert not caplog.records
+
+
 def test_laz_lying_point_count_and_corrupt_data(tmp_path):
     utm_las(tmp_path / "ok.laz", n=3000)
     data = bytearray((tmp_path / "ok.laz").read_bytes())

@@ -7,7 +7,10 @@ extra bytes ...) is kept as an attribute.
 Before laspy sees a file, its header is checked here against the file size: the point count times
 the record length must fit in an uncompressed LAS file (and in at most :data:`LAZ_MAX_RATIO` times
 a LAZ file's compressed point data), so a corrupt count can never allocate more memory than a small
-multiple of the file size. Points are read in chunks.
+multiple of the file size. Points are read in chunks. The header's count wins over the data: point
+records after the declared ones (up to the first EVLR) are named in a warning, and a count of 0 over
+records is an error saying so; of a LAZ file only what its chunk table tells is known without
+decompressing (a count short by more than one chunk, typically 50,000 points).
 """
 
 from __future__ import annotations
@@ -88,12 +91,79 @@ def _check_header(path: Path, head: bytes, size: int, compressed_ext: bool) -> t
     return count, compressed
 
 
+def _records_after(head: bytes, size: int, count: int) -> int:
+    """Whole point records between the end of the ``count`` declared points of an uncompressed LAS file
+    and the end of its point data: the first EVLR (LAS 1.4), the waveform data (LAS 1.3), else the end
+    of the file."""
+    offset_to_points, record_len = struct.unpack_from("<I", head, 96)[0], struct.unpack_from("<H", head, 105)[0]
+    declared_end = offset_to_points + count * record_len
+    end = size
+    if head[25] >= 3 and len(head) >= 235:
+        (waveform,) = struct.unpack_from("<Q", head, 227)
+        if declared_end <= waveform < end:
+            end = waveform
+    if head[25] >= 4 and len(head) >= 247:
+        evlr_start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and declared_end <= evlr_start < end:
+            end = evlr_start
+    return max(end - declared_end, 0) // record_len
+
+
+def _laz_points_at_least(fh, head: bytes, size: int) -> int | None:
+    """A lower bound of the points a LAZ file holds, from its chunk table: more than ``chunks - 1`` chunks
+    of the LASzip record's chunk size. None when that cannot be told from a few bytes (variable-size
+    chunks, no chunk table, an odd header): the chunks' point counts are known only by decompressing."""
+    header_size, offset_to_points, n_vlrs = struct.unpack_from("<HII", head, 94)
+    fh.seek(header_size)
+    vlrs = fh.read(offset_to_points - header_size)
+    chunk_size, pos = None, 0
+    for _ in range(n_vlrs):  # VLR header: reserved, user id (16 bytes), record id, length, description
+        if pos + 54 > len(vlrs):
+            return None
+        record_id, length = struct.unpack_from("<HH", vlrs, pos + 18)
+        if pos + 54 + length > len(vlrs):
+            return None
+        if vlrs[pos + 2 : pos + 18].rstrip(b"\0") == b"laszip encoded" and record_id == 22204 and length >= 16:
+            (chunk_size,) = struct.unpack_from("<I", vlrs, pos + 54 + 12)
+        pos += 54 + length
+    if not chunk_size or chunk_size == 0xFFFFFFFF:
+        return None
+    fh.seek(offset_to_points)
+    raw = fh.read(8)
+    table = struct.unpack("<q", raw)[0] if len(raw) == 8 else -1
+    if table == -1 and size >= 8:  # written to a stream: the table's offset is in the file's last 8 bytes
+        fh.seek(size - 8)
+        table = struct.unpack("<q", fh.read(8))[0]
+    if not offset_to_points + 8 <= table <= size - 8:
+        return None
+    fh.seek(table)
+    version, chunks = struct.unpack("<II", fh.read(8))
+    if version != 0 or not 0 < chunks <= size - offset_to_points:
+        return None
+    return (chunks - 1) * chunk_size + 1
+
+
+def _say_records_after(path: Path, count: int, extra: int, at_least: str = "") -> None:
+    """The error (no point declared) or warning (more points than declared) for ``extra`` point records
+    after the header's ``count``: the header wins, as for the text formats, but not without a word."""
+    if not extra:
+        return
+    if count == 0:
+        raise PointCloudError(f"{path}: the header declares 0 points but {at_least}{extra} point records follow "
+                              "(a writer that never filled in the point count?)")
+    logger.warning("%s: %s%d more point records after the %d points the header declares (ignored)", clean(path),
+                   at_least, extra, count)
+
+
 def read_las(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     head = fh.read(375)
     count, compressed = _check_header(path, head, size, path.suffix.lower() == ".laz")
     if not compressed:
+        _say_records_after(path, count, _records_after(head, size, count))
         fh.seek(0)
         return _read_points(path, fh, count, compressed, attributes)
+    present = _laz_points_at_least(fh, head, size)
+    _say_records_after(path, count, max((present or 0) - count, 0), "at least ")
     with tempfile.TemporaryDirectory(prefix="gctr-laz-") as tmp:
         plain = _decompress_isolated(path, Path(tmp), count * int.from_bytes(head[105:107], "little"))
         with open(plain, "rb") as fh2:

@@ -99,6 +99,12 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                 f"{path}: truncated: the header declares {n} points of {point_size} bytes but only "
                 f"{data_bytes} bytes of binary data follow the header (expected {n * point_size})"
             )
+        if point_size and (extra := (data_bytes - n * point_size) // point_size):
+            if n == 0:
+                raise PointCloudError(f"{path}: the header declares 0 points but {extra} point records follow "
+                                      "(a writer that never filled in POINTS/WIDTH?)")
+            logger.warning("%s: %d more point records after the %d points the header declares (ignored)",
+                           clean(path), extra, n)
         body = fh.read(n * point_size)
         rec_dtype = np.dtype([(f"f{i}", dt, (c,)) if c > 1 else (f"f{i}", dt)
                               for i, (dt, c) in enumerate(zip(dtypes, hdr.counts))])
