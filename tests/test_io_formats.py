@@ -274,6 +274,48 @@ def test_las_output_quantum_follows_the_transform_scale(tmp_path, scale, shift, 
     np.testing.assert_array_equal(out.header.offsets, offsets)
 
 
+def test_laz_without_room_for_its_temporary_copy_says_so_instead_of_corrupt(tmp_path, monkeypatch):
+    """A LAZ file is decompressed to a temporary LAS copy; when that copy could not be written (a full
+    /tmp, ``ulimit -f``) a valid file was called 'corrupt or unsupported LAZ file'."""
+    import errno
+    import resource
+    import tempfile
+
+    from gctr_cli.io import las as las_module
+
+    utm_las(tmp_path / "ok.laz", n=20_000)  # 680 KB of point records uncompressed
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    real = las_module._decompress
+
+    def file_size_limit(path, out):  # runs in the forked child only: a 64 KB file-size limit, as ulimit -f
+        resource.setrlimit(resource.RLIMIT_FSIZE, (65536, 65536))
+        real(path, out)
+
+    monkeypatch.setattr(las_module, "_decompress", file_size_limit)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "ok.laz")
+    assert str(ei.value) == (f"{tmp_path / 'ok.laz'}: cannot decompress the LAZ file: no space for its temporary "
+                             f"copy in {tmp_path} (needs about 1 MB; set TMPDIR to a folder with room)")
+
+    def refused(path, out):
+        raise PermissionError(errno.EACCES, "Permission denied", str(out))
+
+    monkeypatch.setattr(las_module, "_decompress", refused)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "ok.laz")
+    assert str(ei.value) == (f"{tmp_path / 'ok.laz'}: cannot decompress the LAZ file: no permission to write its "
+                             f"temporary copy in {tmp_path} (set TMPDIR to a writable folder)")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "gone"))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "ok.laz")
+    assert str(ei.value) == (f"{tmp_path / 'ok.laz'}: cannot decompress the LAZ file: cannot create a temporary "
+                             f"folder in {tmp_path / 'gone'} (No such file or directory; set TMPDIR to a writable "
+                             "folder with room)")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(las_module, "_decompress", real)
+    assert len(load_point_cloud(tmp_path / "ok.laz")) == 20_000
+
+
 # ----------------------------------------------------------------------------------------------------
 # E57
 # ----------------------------------------------------------------------------------------------------

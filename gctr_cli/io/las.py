@@ -15,6 +15,7 @@ decompressing (a count short by more than one chunk, typically 50,000 points).
 
 from __future__ import annotations
 
+import errno
 import io as _stdio
 import logging
 import math
@@ -164,8 +165,15 @@ def read_las(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         return _read_points(path, fh, count, compressed, attributes)
     present = _laz_points_at_least(fh, head, size)
     _say_records_after(path, count, max((present or 0) - count, 0), "at least ")
-    with tempfile.TemporaryDirectory(prefix="gctr-laz-") as tmp:
-        plain = _decompress_isolated(path, Path(tmp), count * int.from_bytes(head[105:107], "little"))
+    raw_bytes = count * int.from_bytes(head[105:107], "little")
+    try:
+        tmp_dir = tempfile.TemporaryDirectory(prefix="gctr-laz-")
+    except OSError as exc:
+        raise PointCloudError(f"{path}: cannot decompress the LAZ file: cannot create a temporary folder in "
+                              f"{clean(tempfile.gettempdir())} ({exc.strerror or 'operating system error'}; set "
+                              "TMPDIR to a writable folder with room)") from None
+    with tmp_dir as tmp:
+        plain = _decompress_isolated(path, Path(tmp), raw_bytes)
         with open(plain, "rb") as fh2:
             plain_size = os.fstat(fh2.fileno()).st_size
             count2, _ = _check_header(path, fh2.read(375), plain_size, False)
@@ -176,6 +184,25 @@ def read_las(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             return _read_points(path, fh2, count, True, attributes)
 
 
+#: exit codes of the decompressing child: done, corrupt data, no room for / no right to write the copy
+_CHILD_OK, _CHILD_CORRUPT, _CHILD_NO_SPACE, _CHILD_NO_PERMISSION = 0, 3, 4, 5
+_NO_SPACE = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
+_NO_PERMISSION = {errno.EACCES, errno.EPERM, errno.EROFS}
+
+
+def _child_code(exc: BaseException) -> int:
+    """The child's exit code for ``exc``: a full disk or file-size limit (``ulimit -f``) or a refused
+    write anywhere in its chain (laspy's writer may raise again while closing), else corrupt data."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno in _NO_SPACE:
+            return _CHILD_NO_SPACE
+        if isinstance(seen, OSError) and seen.errno in _NO_PERMISSION:
+            return _CHILD_NO_PERMISSION
+        seen = seen.__cause__ or seen.__context__
+    return _CHILD_CORRUPT
+
+
 def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
     """Decompress a LAZ file to a plain LAS file in a forked child process.
 
@@ -183,6 +210,8 @@ def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
     Rust aborts when an allocation fails), so a corrupt LAZ must not be decoded in the process that
     reports the error. The child's address space is capped at its current size plus a few times the
     declared point data; a crash, a refused allocation or a hang becomes a :class:`PointCloudError`.
+    The child writes the copy to ``tmp`` and says by its exit code (:func:`_child_code`) whether it failed
+    for want of room or rights there, which is not the file's fault and is said so.
     Where ``fork`` is unavailable the file is decoded in-process.
     """
     out = tmp / "points.las"
@@ -210,9 +239,9 @@ def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
             except (ImportError, ValueError, OSError):
                 pass
             _decompress(path, out)
-            code = 0
-        except BaseException:  # noqa: BLE001
-            code = 3
+            code = _CHILD_OK
+        except BaseException as exc:  # noqa: BLE001
+            code = _child_code(exc)
         finally:
             os._exit(code)
     deadline = time.monotonic() + 60 + raw_bytes / 20e6
@@ -225,7 +254,16 @@ def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
             os.waitpid(pid, 0)
             raise PointCloudError(f"{path}: corrupt LAZ file: decompressing the point data did not finish")
         time.sleep(0.005)
-    if not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0 and out.exists()):
+    exit_code = os.WEXITSTATUS(status) if os.WIFEXITED(status) else None
+    where = clean(tmp.parent)
+    if exit_code == _CHILD_NO_SPACE:
+        need = max(1, math.ceil((raw_bytes + 65536) / 1e6))
+        raise PointCloudError(f"{path}: cannot decompress the LAZ file: no space for its temporary copy in {where} "
+                              f"(needs about {need} MB; set TMPDIR to a folder with room)")
+    if exit_code == _CHILD_NO_PERMISSION:
+        raise PointCloudError(f"{path}: cannot decompress the LAZ file: no permission to write its temporary copy "
+                              f"in {where} (set TMPDIR to a writable folder)")
+    if not (exit_code == _CHILD_OK and out.exists()):
         raise PointCloudError(f"{path}: corrupt or unsupported LAZ file: the point data cannot be decompressed")
     return out
 
