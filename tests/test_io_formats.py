@@ -316,6 +316,61 @@ def test_laz_without_room_for_its_temporary_copy_says_so_instead_of_corrupt(tmp_
     assert len(load_point_cloud(tmp_path / "ok.laz")) == 20_000
 
 
+def test_las_extra_dimensions_of_several_elements_and_scaled_ones_are_kept(tmp_path):
+    """A 3-element extra dimension (normals, 3 doubles) was missing from LAS and PLY outputs, and a scaled
+    one (u2 × 0.1) came back as float64: now PLY gets one column per element and LAS the source's own
+    declarations."""
+    n = 500
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.add_extra_dims([laspy.ExtraBytesParams("height", "f8"), laspy.ExtraBytesParams("normals", "3f8"),
+                        laspy.ExtraBytesParams("amplitude", "u2", description="dB", scales=np.array([0.1]),
+                                               offsets=np.array([0.0]))])
+    las = laspy.LasData(hdr)
+    rng = np.random.default_rng(8)
+    las.x, las.y, las.z = rng.normal(size=(3, n)) * 10
+    las.height = rng.normal(size=n)
+    las.normals = rng.normal(size=(n, 3))
+    las.amplitude = rng.integers(0, 6000, n) / 10
+    las.write(tmp_path / "extra.las")
+    T = to_matrix(1.0, rotation([1, 0, 0], 20), [1.0, 2.0, 3.0])
+    write_aligned(tmp_path / "extra.las", T, tmp_path / "out.las")
+    out = laspy.read(tmp_path / "out.las")
+    assert [(d.name, d.type_str(), None if d.scales is None else list(d.scales), d.description)
+            for d in out.point_format.extra_dimensions] == [
+        ("height", "f8", None, ""), ("normals", "3f8", None, ""), ("amplitude", "u2", [0.1], "dB")]
+    np.testing.assert_array_equal(out.normals, las.normals)
+    np.testing.assert_array_equal(out.points.array["amplitude"], las.points.array["amplitude"])  # the same integers
+    write_aligned(tmp_path / "extra.las", T, tmp_path / "out.ply")
+    ply = read_point_cloud(tmp_path / "out.ply").attributes
+    for j in range(3):
+        np.testing.assert_array_equal(ply[f"normals_{j}"], las.normals[:, j])
+    np.testing.assert_allclose(ply["amplitude"], las.amplitude)
+
+
+def test_scan_angle_rank_fills_the_scan_angle_of_formats_6_to_10(tmp_path):
+    """Formats 0-5 store the scan angle in whole degrees (scan_angle_rank), 6-10 in 0.006° steps
+    (scan_angle): a rank went into an extra dimension and the standard scan angle was written 0."""
+    pts = np.random.default_rng(9).normal(size=(20, 3))
+    rank = np.arange(-45, 55, 5, dtype=np.int8)
+    write_point_cloud(tmp_path / "out.las", PointCloud(pts, {"scan_angle_rank": rank}))
+    out = laspy.read(tmp_path / "out.las")
+    assert out.point_format.id == 6 and not list(out.point_format.extra_dimension_names)
+    np.testing.assert_array_equal(out.scan_angle, np.round(rank / 0.006))
+    np.testing.assert_allclose(out.scan_angle * 0.006, rank, atol=0.003)
+    # and back: a format 6 scan angle into a format 1 file (the source's format)
+    hdr = laspy.LasHeader(point_format=1, version="1.2")
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts.T
+    las.write(tmp_path / "pf1.las")
+    cloud = read_point_cloud(tmp_path / "pf1.las")
+    attrs = {k: v for k, v in cloud.attributes.items() if k != "scan_angle_rank"}
+    attrs["scan_angle"] = np.round(rank / 0.006).astype(np.int16)
+    write_point_cloud(tmp_path / "back.las", PointCloud(cloud.points, attrs, "las", cloud.meta))
+    back = laspy.read(tmp_path / "back.las")
+    assert back.point_format.id == 1 and not list(back.point_format.extra_dimension_names)
+    np.testing.assert_array_equal(back.scan_angle_rank, rank)
+
+
 # ----------------------------------------------------------------------------------------------------
 # E57
 # ----------------------------------------------------------------------------------------------------

@@ -2,7 +2,8 @@
 
 Coordinates are ``X * scale + offset`` computed in float64, so UTM-size offsets keep full precision.
 Every point dimension other than X Y Z (intensity, classification, return numbers, colours, GPS time,
-extra bytes ...) is kept as an attribute.
+extra bytes ...) is kept as an attribute; an extra dimension of k elements (``normals``, 3 doubles) as
+k columns ``normals_0 normals_1 normals_2``, which a LAS output of the same source joins again.
 
 Before laspy sees a file, its header is checked here against the file size: the point count times
 the record length must fit in an uncompressed LAS file (and in at most :data:`LAZ_MAX_RATIO` times
@@ -320,8 +321,13 @@ def _read_points(path: Path, fh, count: int, compressed: bool, attributes: bool)
         raise PointCloudError(f"{path}: corrupt or unsupported LAS/LAZ file: the {what}") from None
     if got != count:
         raise PointCloudError(f"{path}: truncated: the header declares {count} points but only {got} could be read")
-    out = {n: (np.concatenate(v) if v else np.empty(0)) for n, v in attrs.items()}
-    out = {n: v for n, v in out.items() if v.ndim == 1 and len(v) == count}
+    out: dict[str, np.ndarray] = {}
+    for name, parts in attrs.items():
+        v: np.ndarray = np.concatenate(parts) if parts else np.empty(0)
+        if v.ndim == 2:  # an extra dimension of several elements (normals '3f8'): one column each
+            out.update({f"{name}_{j}": v[:, j] for j in range(v.shape[1])})
+        elif len(v) == count:
+            out[name] = v
     # the whole header: a LAS/LAZ writer carries its CRS records, encoding bits and ids (:func:`las_bytes`)
     meta = {"las_point_format": int(hdr.point_format.id), "las_version": str(hdr.version), "las_header": hdr}
     return PointCloud(pts, out, "las", meta)
@@ -508,6 +514,53 @@ def _carry_header(header: Any, source: Any, where: str) -> None:
         logger.warning("%s: not kept from the LAS source: %s", where, ", ".join(dict.fromkeys(dropped)))
 
 
+#: a scan angle of point formats 6-10 counts steps of this many degrees; formats 0-5 store whole degrees
+SCAN_ANGLE_STEP = 0.006
+
+
+def _scan_angle_as(standard: set[str], attrs: dict[str, np.ndarray]) -> None:
+    """Put the scan angle into the field the output point format has: ``scan_angle_rank`` (whole
+    degrees, formats 0-5) or ``scan_angle`` (0.006° steps, formats 6-10), instead of writing one as an
+    extra dimension and leaving the other 0."""
+    if "scan_angle_rank" in attrs and "scan_angle_rank" not in standard and "scan_angle" not in attrs:
+        attrs["scan_angle"] = np.round(attrs.pop("scan_angle_rank").astype(np.float64) / SCAN_ANGLE_STEP)
+    elif "scan_angle" in attrs and "scan_angle" not in standard and "scan_angle_rank" not in attrs:
+        attrs["scan_angle_rank"] = np.round(attrs.pop("scan_angle").astype(np.float64) * SCAN_ANGLE_STEP)
+
+
+def _join_elements(source_extra: dict[str, Any], attrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``attrs`` with the columns ``name_0 name_1 ...`` the reader made of a source extra dimension of
+    several elements put back together in the first one's place, so that it is written as it was read
+    (``normals`` as one '3f8' dimension)."""
+    joined = {}
+    for name, dim in source_extra.items():
+        parts = [f"{name}_{j}" for j in range(dim.num_elements)]
+        if dim.num_elements > 1 and name not in attrs and all(p in attrs for p in parts):
+            joined[parts[0]] = (name, parts)
+    out = {}
+    for k, v in attrs.items():
+        if k in joined:
+            name, parts = joined[k]
+            out[name] = np.stack([attrs[p] for p in parts], axis=1)
+        elif not any(k in parts for _, parts in joined.values()):
+            out[k] = v
+    return out
+
+
+def _extra_dim(name: str, values: np.ndarray, source_dim: Any) -> Any:
+    """The extra dimension for ``values``: the source's own declaration (type, scale, offset, description)
+    when it had one of that name and shape, else one of the values' type."""
+    import laspy
+
+    elements = values.shape[1] if values.ndim == 2 else 1
+    if source_dim is not None and source_dim.num_elements == elements and source_dim.dtype is not None:
+        return laspy.ExtraBytesParams(name=name, type=source_dim.dtype, description=source_dim.description,
+                                      offsets=source_dim.offsets, scales=source_dim.scales,
+                                      no_data=source_dim.no_data)
+    kind = values.dtype.str[1:]  # "f8"
+    return laspy.ExtraBytesParams(name=name, type=kind if elements == 1 else f"{elements}{kind}")
+
+
 def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> bytes:
     """The bytes of a LAS file (LAZ when ``compress``).
 
@@ -535,12 +588,15 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     if source is not None:
         _carry_header(header, source, where)
     standard = set(header.point_format.dimension_names)
+    _scan_angle_as(standard, attrs)
+    source_extra = {d.name: d for d in source.point_format.extra_dimensions} if source is not None else {}
+    attrs = _join_elements(source_extra, attrs)
     extra = [k for k, v in attrs.items() if k not in standard and v.dtype.kind in "fiu" and k.isidentifier()]
     for k in sorted(attrs.keys() - standard - set(extra) - {"X", "Y", "Z", "x", "y", "z"}):
         logger.warning("%s: attribute %r not written (LAS extra bytes hold numbers under a name like an "
                        "identifier)", where, k)
     if extra:
-        header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=attrs[k].dtype) for k in extra])
+        header.add_extra_dims([_extra_dim(k, attrs[k], source_extra.get(k)) for k in extra])
     if not n:
         so = [(0.001, 0.0)] * 3
     elif source is not None:
