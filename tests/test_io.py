@@ -419,6 +419,72 @@ def test_pcd_written_by_open3d_binary(tmp_path, rng, compressed):
     np.testing.assert_array_equal(out, np.asarray(o3d().io.read_point_cloud(str(path)).points))
 
 
+def sensor_pcd(path: Path, data: str, n: int = 60) -> dict[str, np.ndarray]:
+    """A PCD file as a scanner driver writes it: a COUNT 3 field, a packed rgba with alpha, a sensor
+    VIEWPOINT; returns the values written."""
+    rng = np.random.default_rng(12)
+    v = {"xyz": rng.normal(size=(n, 3)).astype(np.float32), "hist": rng.integers(0, 1000, (n, 3)).astype(np.uint16),
+         "rgba": rng.integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32)}
+    header = ("VERSION 0.7\nFIELDS x y z hist rgba\nSIZE 4 4 4 2 4\nTYPE F F F U U\nCOUNT 1 1 1 3 1\n"
+              f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 10 20 1.5 0.7071067811865476 0 0 0.7071067811865476\nPOINTS {n}\n"
+              f"DATA {data}\n").encode()
+    if data == "ascii":
+        body = "".join(f"{x!r} {y!r} {z!r} {h[0]} {h[1]} {h[2]} {c}\n" for (x, y, z), h, c in
+                       zip(v["xyz"].astype(float).tolist(), v["hist"], v["rgba"])).encode()
+    else:
+        rec = np.empty(n, [("xyz", "<f4", (3,)), ("hist", "<u2", (3,)), ("rgba", "<u4")])
+        rec["xyz"], rec["hist"], rec["rgba"] = v["xyz"], v["hist"], v["rgba"]
+        body = rec.tobytes()
+        if data == "binary_compressed":  # one column after the other
+            import lzf
+
+            raw = b"".join(np.ascontiguousarray(v["xyz"][:, j]).tobytes() for j in range(3))
+            raw += v["hist"].tobytes() + v["rgba"].tobytes()
+            packed = lzf.compress(raw, 2 * len(raw) + 64)  # random values do not shrink
+            body = struct.pack("<II", len(packed), len(raw)) + packed
+    path.write_bytes(header + body)
+    return v
+
+
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
+def test_pcd_count_3_fields_rgba_alpha_and_viewpoint_are_kept(tmp_path, data, caplog):
+    """A field of COUNT 3 and rgba's alpha were dropped without a word; a non-identity VIEWPOINT was
+    ignored on read and written back as the identity."""
+    v = sensor_pcd(tmp_path / "scan.pcd", data)
+    caplog.set_level(logging.WARNING, logger="gctr_cli.io")
+    cloud = read_point_cloud(tmp_path / "scan.pcd")
+    np.testing.assert_array_equal(cloud.points, v["xyz"])
+    for j in range(3):
+        np.testing.assert_array_equal(cloud.attributes[f"hist_{j}"], v["hist"][:, j])
+    np.testing.assert_array_equal(cloud.attributes["alpha"], v["rgba"] >> 24)
+    np.testing.assert_array_equal(cloud.attributes["red"], (v["rgba"] >> 16) & 0xFF)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'scan.pcd'}: the PCD VIEWPOINT (the sensor's pose: translation 10 20 1.5, rotation "
+        "quaternion w x y z 0.707107 0 0 0.707107) is not applied to the points, as in PCL; only a PCD output "
+        "keeps it, moved with the points"]
+
+    from gctr_cli.io import write_aligned
+
+    write_aligned(tmp_path / "scan.pcd", np.eye(4), tmp_path / "same.pcd")
+    text = (tmp_path / "same.pcd").read_bytes()
+    assert b"\nVIEWPOINT 10 20 1.5 0.7071067811865476 0 0 0.7071067811865476\n" in text
+    assert b"FIELDS x y z rgba hist_0 hist_1 hist_2\n" in text
+    back = read_point_cloud(tmp_path / "same.pcd")
+    for k in ("hist_0", "alpha", "red", "blue"):
+        np.testing.assert_array_equal(back.attributes[k], cloud.attributes[k], err_msg=k)
+
+    T = to_matrix(2.0, rotation_z(90), [1.0, -1.0, 0.0])
+    write_aligned(tmp_path / "scan.pcd", T, tmp_path / "moved.pcd")
+    line = next(x for x in (tmp_path / "moved.pcd").read_text("latin-1").splitlines() if x.startswith("VIEWPOINT"))
+    vp = np.array(line.split()[1:], dtype=float)
+    np.testing.assert_allclose(vp[:3], [-39.0, 19.0, 3.0], atol=1e-9)  # 2 * Rz(90) (10, 20, 1.5) + (1, -1, 0)
+    np.testing.assert_allclose(np.abs(vp[3:]), [0, 0, 0, 1], atol=1e-9)  # turned 90° twice about z: 180°
+
+    write_aligned(tmp_path / "scan.pcd", np.eye(4), tmp_path / "out.ply")
+    ply = read_point_cloud(tmp_path / "out.ply").attributes
+    assert {"hist_0", "hist_1", "hist_2", "alpha", "red"} <= ply.keys()
+
+
 def test_lzf_repeating_patterns(tmp_path):
     # Highly repetitive data exercises long and overlapping back references.
     n = 2000
@@ -431,6 +497,11 @@ def test_lzf_repeating_patterns(tmp_path):
     csize, usize = struct.unpack("<II", path.read_bytes().split(b"DATA binary_compressed\n", 1)[1][:8])
     assert csize < usize / 10  # really compressed
     np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def rotation_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
 
 def test_pcd_binary_field_order_padding_and_counts(tmp_path, rng):
