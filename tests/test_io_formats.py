@@ -401,6 +401,34 @@ def test_e57_merges_every_scan_with_its_pose(tmp_path):
     assert cloud.attributes["intensity"].shape == (500,)
 
 
+def test_e57_says_which_scans_it_merged_what_it_drops_and_which_fields_it_does_not_keep(tmp_path, caplog):
+    """Intensity disappeared without a word when one of several scans lacked it, and so did the points
+    flagged invalid and the fields gctr does not read (row/column indices)."""
+    rng = np.random.default_rng(3)
+    e = pye57.E57(str(tmp_path / "site.e57"), mode="w")
+    a, b = rng.normal(size=(300, 3)), rng.normal(size=(200, 3))
+    state = np.zeros(300, np.int8)
+    state[::10] = 2  # 30 points without coordinates
+    e.write_scan_raw({"cartesianX": a[:, 0], "cartesianY": a[:, 1], "cartesianZ": a[:, 2], "intensity": np.ones(300),
+                      "cartesianInvalidState": state, "rowIndex": np.arange(300) // 20,
+                      "columnIndex": np.arange(300) % 20}, name="Station 1")
+    e.write_scan_raw({"cartesianX": b[:, 0], "cartesianY": b[:, 1], "cartesianZ": b[:, 2]}, name="Station 2",
+                     translation=np.array([5.0, 0.0, 0.0]))
+    e.close()
+    caplog.set_level("INFO", logger="gctr_cli.io")
+    cloud = read_point_cloud(tmp_path / "site.e57")
+    assert len(cloud) == 470 and "intensity" not in cloud.attributes
+    path = tmp_path / "site.e57"
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [
+        ("WARNING", f"{path}: not kept: intensity (missing from scan 1 'Station 2'; kept only when every scan has "
+                    "it); 'columnIndex', 'rowIndex' (point fields gctr does not read)"),
+        ("INFO", f"{path}: merged 2 scans, each placed by its pose: scan 0 'Station 1', scan 1 'Station 2'"),
+        ("WARNING", f"{path}: dropped 30 of 500 points the E57 file flags invalid (no coordinates measured)")]
+    caplog.clear()
+    load_point_cloud(path)  # coordinates only: no word about attributes
+    assert [r.levelname for r in caplog.records] == ["INFO", "WARNING"]
+
+
 def test_e57_scan_with_an_invalid_pose_is_named(tmp_path):
     """A zero quaternion would put every point at the scan's translation ("all points identical"):
     the error names the scan and its pose instead."""
