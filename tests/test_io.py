@@ -213,6 +213,27 @@ def test_ply_binary_vertex_with_list_property(tmp_path, rng):
     np.testing.assert_array_equal(load_point_cloud(path), pts)
 
 
+def test_ply_vertex_list_properties_not_kept_are_named_once(tmp_path, rng, caplog):
+    """Per-vertex lists (here a variable-length 'tags' and a fixed 'rgb_list') were dropped without a word."""
+    pts = rng.normal(size=(12, 3))
+    body = b"".join(struct.pack("<d", p[0]) + struct.pack("<B", k) + struct.pack(f"<{k}h", *range(k))
+                    + struct.pack("<dd", p[1], p[2]) + struct.pack("<B3B", 3, 1, 2, 3) + struct.pack("<f", 0.5)
+                    for k, p in zip(range(12), pts))
+    hdr = ply_header("binary_little_endian", [("vertex", 12, ["double x", "list uchar short tags", "double y",
+                                                             "double z", "list uchar uchar rgb_list", "float q"])])
+    path = tmp_path / "vl.ply"
+    path.write_bytes(hdr + body)
+    caplog.set_level(logging.WARNING, logger="gctr_cli.io")
+    cloud = read_point_cloud(path)
+    np.testing.assert_array_equal(cloud.points, pts)
+    np.testing.assert_array_equal(cloud.attributes["q"], np.full(12, 0.5, np.float32))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: vertex list properties 'tags', 'rgb_list' not kept (gctr keeps one value per vertex and property)"]
+    caplog.clear()
+    load_point_cloud(path)  # coordinates only: nothing is dropped that was asked for
+    assert not caplog.records
+
+
 def test_ply_ascii_element_before_vertex_and_list_in_vertex(tmp_path, rng):
     pts = np.round(rng.normal(size=(12, 3)), 6)
     lines = ["2 7 8", "0", "1 9"]  # 'grid' element with a list
