@@ -4,9 +4,10 @@ The first three columns are x y z; extra columns are ignored; leading header lin
 numbers, a leading point-count line (one number on its own) and ``#`` / ``//`` comment lines are
 skipped. Columns are separated by blanks, tabs, commas or semicolons. Exports with decimal commas are
 read when the separator makes them unambiguous (tabs or semicolons: ``1,5;2,25;3`` is x=1.5 y=2.25
-z=3); decimal commas separated by blanks (``1,5 2,25 3,0``) are refused with a message saying so,
-because they cannot be told apart from comma-separated columns. The dialect is read off the first
-data line and held to: a later line that does not fit it, or has an empty x/y/z cell, is an error
+z=3); the x y z cells alone decide, so a later ``14.03.2024 10:15:00,000`` or ``Punkt 1, Gruppe A``
+changes nothing. Decimal commas separated by blanks (``1,5 2,25 3,0``) are refused with a message
+saying so, because they cannot be told apart from comma-separated columns. The dialect is read off
+the first data line and held to: a later line that does not fit it, or has an empty x/y/z cell, is an error
 naming the line, never a silent shift of the columns. A leading point-count line that promises more
 points than follow is an error (a truncated file); a count line further down starts the next section
 of a multi-section PTS file (one section per scan).
@@ -166,17 +167,19 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
 
 
 def _dialect(line: str, path: Path, lineno: int) -> bytes:
-    """The byte translation for the file, decided on its first data line.
+    """The byte translation for the file, decided on the x y z cells of its first data line.
 
-    Tabs or semicolons between columns: commas are decimal commas unless this line uses them between
-    columns too (a later ``1,5`` after a first line of whole numbers is then 1.5, and a later comma
-    between columns is an error, never a silent split). Commas between columns: commas and
-    semicolons become blanks; the same for blanks between columns, where a later line may mix in
-    commas (``1.5,2.5,3.5``) but not decimal commas (``1,5 2,5 3,5`` is an error, not six columns:
+    Tabs or semicolons between columns: commas are decimal commas unless the first three cells use
+    them between columns too (a later ``1,5`` after a first line of whole numbers is then 1.5, and a
+    later comma between columns is an error, never a silent split). Only x y z decide: a later cell
+    such as ``14.03.2024 10:15:00,000`` or ``Punkt 1, Gruppe A`` made every comma a column separator
+    and x y z wrong numbers. Commas between columns: commas and semicolons become blanks; the same
+    for blanks between columns, where a later line may mix in commas (``1.5,2.5,3.5``) but not
+    decimal commas (``1,5 2,5 3,5`` is an error, not six columns:
     :func:`_decimal_commas_between_blanks`)."""
     if ";" in line or "\t" in line:
-        fields = [f.strip() for f in re.split(r"[;\t]", line) if f.strip()]
-        if any("," in f and not _DEC_COMMA_TOKEN.match(f) for f in fields):
+        xyz = [f.strip() for f in re.split(r"[;\t]", line) if f.strip()][:3]
+        if any("," in f and not _DEC_COMMA_TOKEN.match(f) for f in xyz):
             return _PLAIN
         return _DECIMAL_COMMA
     toks = line.split()
