@@ -7,8 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
-from gctr_cli.io import PointCloudError, load_point_cloud, read_point_cloud
+from gctr_cli import cli
+from gctr_cli.io import PointCloud, PointCloudError, load_point_cloud, read_point_cloud, write_matrix, write_point_cloud
 
 RNG = np.random.default_rng(2024)
 #: past the first 64 KiB block, so numpy's fast path reads most of the lines
@@ -77,3 +79,213 @@ def test_commas_between_columns_and_between_blanks_are_still_told_apart(tmp_path
     path = tmp_path / "blanks.xyz"
     path.write_text("1,5 2,25 3,0\n" * 20)
     _error(path, "line 1", "decimal commas separated by blanks")
+
+
+# ----------------------------------------------------------------------------------------------------
+# the columns after x y z are kept as attributes (apply, --aligned), or dropped with one warning
+# ----------------------------------------------------------------------------------------------------
+
+
+def _rows(pts: np.ndarray, extra: np.ndarray, sep: str = " ") -> str:
+    return "".join(sep.join([*(f"{v!r}" for v in p), *(f"{v:g}" for v in e)]) + "\n"
+                   for p, e in zip(pts.tolist(), extra.tolist(), strict=True))
+
+
+def _columns(n: int, k: int) -> np.ndarray:
+    return RNG.integers(0, 256, size=(n, k)).astype(np.float64)
+
+
+def test_gctr_text_output_round_trips_with_its_attribute_columns(tmp_path):
+    """gctr writes ``# x y z name ...`` and one column per attribute; reading it dropped them all."""
+    n = 300
+    pts = _points(n)
+    attrs = {"intensity": RNG.integers(0, 60000, n).astype(np.uint16), "red": RNG.integers(0, 256, n).astype(np.uint8),
+             "green": RNG.integers(0, 256, n).astype(np.uint8), "blue": RNG.integers(0, 256, n).astype(np.uint8),
+             "nx": RNG.normal(size=n).astype(np.float32), "scalar_field": RNG.normal(size=n)}
+    for ext in (".xyz", ".txt"):
+        write_point_cloud(tmp_path / f"out{ext}", PointCloud(pts, attrs))
+        back = read_point_cloud(tmp_path / f"out{ext}")
+        np.testing.assert_array_equal(back.points, pts)
+        assert list(back.attributes) == list(attrs)
+        for k, v in attrs.items():
+            assert back.attributes[k].dtype == np.float64, k
+            np.testing.assert_array_equal(back.attributes[k], v.astype(np.float64), err_msg=k)
+
+
+@pytest.mark.parametrize("name, header, sep, expected", [
+    ("upper.txt", "X Y Z R G B\n", " ", ["red", "green", "blue"]),
+    ("intensity.txt", "//X,Y,Z,Intensity\n", ",", ["intensity"]),
+    ("cloudcompare.txt", "//X,Y,Z,R,G,B,Scalar field\n", ",", ["red", "green", "blue", "scalar_field"]),
+    ("tabs.txt", "X\tY\tZ\tI\tReturn Number\n", "\t", ["intensity", "return_number"]),
+    ("count_below_names.xyz", "x y z a b\n20\n", " ", ["a", "b"]),
+    ("no_names.xyz", "", " ", ["column_4", "column_5"]),
+    ("other_count.xyz", "X Y Z R G B\n", " ", ["column_4", "column_5"]),  # 6 names, 5 columns
+    ("unusable.txt", "X;Y;Z;Intensität;R;G;B\n", ";", ["column_4", "red", "green", "blue"]),
+    ("coordinates.txt", "E N H X\n", " ", ["column_4"]),
+    ("repeated.txt", "X Y Z Intensity I\n", " ", ["column_4", "column_5"]),
+    ("b_alone.txt", "X Y Z A B\n", " ", ["a", "b"]),
+    ("leica4.pts", "", " ", ["intensity"]),
+    ("leica6.pts", "", " ", ["red", "green", "blue"]),
+    ("leica7.pts", "", " ", ["intensity", "red", "green", "blue"]),
+    ("leica5.pts", "", " ", ["column_4", "column_5"]),
+    ("named.pts", "# x y z a b c d\n", " ", ["a", "b", "c", "d"]),
+])
+def test_attribute_names_come_from_the_header_or_the_pts_convention(tmp_path, name, header, sep, expected):
+    n_cols = len(expected) + 3 if name != "other_count.xyz" else 5
+    pts, extra = _points(N_BIG), _columns(N_BIG, n_cols - 3)
+    path = tmp_path / name
+    path.write_text(header + _rows(pts, extra, sep))
+    back = read_point_cloud(path)
+    np.testing.assert_array_equal(back.points, pts)
+    assert list(back.attributes) == expected
+    np.testing.assert_array_equal(np.stack([back.attributes[k] for k in expected], axis=1), extra)
+    assert not read_point_cloud(path, attributes=False).attributes  # registration reads x y z only
+
+
+def test_decimal_comma_attribute_columns_are_read(tmp_path):
+    pts = _points(50)
+    rows = [";".join([*map(_decimal_comma, p), _decimal_comma(i / 8), str(i % 256)]) for i, p in enumerate(pts)]
+    path = tmp_path / "de.txt"
+    path.write_text("Rechtswert;Hochwert;Höhe;Intensity;Klasse\n" + "\n".join(rows) + "\n")
+    back = read_point_cloud(path)
+    assert list(back.attributes) == ["intensity", "klasse"]
+    np.testing.assert_array_equal(back.attributes["intensity"], np.arange(50) / 8)
+    np.testing.assert_array_equal(back.attributes["klasse"], np.arange(50) % 256)
+
+
+def _ragged(n: int, bad: int, bad_row: str) -> tuple[np.ndarray, str]:
+    pts, extra = _points(n), _columns(n, 4)
+    lines = _rows(pts, extra).splitlines(keepends=True)
+    lines[bad] = bad_row
+    return pts, "".join(lines)
+
+
+@pytest.mark.parametrize("bad, bad_row, problem", [
+    (9, "1 2 3 4 5\n", "line 10 has 5 columns, the first data line 7"),
+    (N_BIG - 10, "1 2 3 4 5\n", f"line {N_BIG - 9} has 5 columns, the first data line 7"),  # numpy's fast path
+    (N_BIG - 10, "1 2 3 4 5 6 7 8\n", f"line {N_BIG - 9} has 8 columns, the first data line 7"),
+    (9, "1 2 3 4 5 six 7\n", "line 10 has a non-numeric value 'six' in column 6"),
+    (N_BIG - 10, "1 2 3 4 5 nan 1_000\n", f"line {N_BIG - 9} has a non-numeric value '1_000' in column 7"),
+])
+def test_columns_that_do_not_fit_are_dropped_with_one_warning_naming_the_line(tmp_path, caplog, bad, bad_row,
+                                                                              problem):
+    """Lines with another number of columns or a non-numeric value after x y z: x y z are read (they are
+    numbers), the other columns are dropped, and the user hears it once, never an error."""
+    pts, text = _ragged(N_BIG, bad, bad_row)
+    pts[bad] = [1, 2, 3]
+    path = tmp_path / "ragged.xyz"
+    path.write_text(text)
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    back = read_point_cloud(path)
+    np.testing.assert_array_equal(back.points, pts)
+    assert back.attributes == {}
+    assert [r.getMessage() for r in caplog.records] == [f"{path}: columns after x y z are not kept: {problem}"]
+    caplog.clear()
+    np.testing.assert_array_equal(read_point_cloud(path, attributes=False).points, pts)
+    assert not caplog.records  # a registration's read does not read them and says nothing
+
+
+def test_the_first_line_that_does_not_fit_is_named(tmp_path, caplog):
+    """A non-numeric value on line 5 and a short line on line 8 of the same block: line 5 is named."""
+    _, text = _ragged(20, 7, "1 2 3 4 5\n")
+    lines = text.splitlines(keepends=True)
+    lines[4] = lines[4].rsplit(" ", 1)[0] + " n/a\n"
+    (tmp_path / "two.xyz").write_text("".join(lines))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    assert read_point_cloud(tmp_path / "two.xyz").attributes == {}
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'two.xyz'}: columns after x y z are not kept: line 5 has a non-numeric value 'n/a' in column 7"]
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("".join(f"{i}.5 {i * i} 1\n" for i in range(12)) + "1 2 3 4 5\n", "line 13 has 5 columns, the first data line 3"),
+    ("".join(f"{i}.5,{i * i},1,,7\n" for i in range(12)), "line 1 has an empty cell after x y z ('0.5,0,1,,7')"),
+    ("".join(f"{i},5;{i * i};1;14.03.2024 10:15:00,000\n" for i in range(12)),
+     "line 1 has a non-numeric value '14.03.2024' in column 4"),
+])
+def test_more_reasons_columns_are_dropped_are_said(tmp_path, caplog, text, problem):
+    """Columns after a first line of only x y z; an empty cell, which would shift the later columns; a
+    timestamp: each is said once."""
+    path = tmp_path / "c.txt"
+    path.write_text(text)
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    assert read_point_cloud(path).attributes == {}
+    assert [r.getMessage() for r in caplog.records] == [f"{path}: columns after x y z are not kept: {problem}"]
+
+
+def test_apply_keeps_the_columns_of_a_text_cloud(tmp_path):
+    """`gctr apply` to a PLY: the colours and intensity of a Leica PTS file arrive, and Open3D shows them."""
+    import open3d as o3d
+
+    pts, extra = _points(200), np.hstack([_columns(200, 1), _columns(200, 3)])
+    (tmp_path / "scan.pts").write_text("200\n" + _rows(pts, extra))
+    write_matrix(tmp_path / "T.txt", np.eye(4))
+    res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "T.txt"), str(tmp_path / "scan.pts"),
+                                        "-o", str(tmp_path / "out.ply")])
+    assert res.exit_code == 0, res.output
+    back = read_point_cloud(tmp_path / "out.ply")
+    np.testing.assert_allclose(back.points, pts, rtol=0, atol=1e-12)  # moved about their mean
+    for j, k in enumerate(("intensity", "red", "green", "blue")):
+        np.testing.assert_array_equal(back.attributes[k], extra[:, j], err_msg=k)
+    np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "out.ply")).colors),
+                               extra[:, 1:] / 255.0, atol=1e-9)
+
+
+def test_columns_read_over_many_blocks_are_joined_or_all_dropped(tmp_path, caplog, monkeypatch):
+    """In blocks of 4 KiB (each a numpy read): the columns of every block are joined in order; one bad
+    line in a late block drops those of the blocks before it too."""
+    import gctr_cli.io.text as text
+
+    monkeypatch.setattr(text, "_TEXT_BLOCK", 4096)
+    pts, extra = _points(2000), _columns(2000, 2)
+    (tmp_path / "good.xyz").write_text("X Y Z R Intensity\n" + _rows(pts, extra))
+    back = read_point_cloud(tmp_path / "good.xyz")
+    np.testing.assert_array_equal(back.points, pts)
+    np.testing.assert_array_equal(np.stack([back.attributes["r"], back.attributes["intensity"]], axis=1), extra)
+    lines = _rows(pts, extra).splitlines(keepends=True)
+    lines[1900] = lines[1900].rstrip("\n") + " 7\n"
+    (tmp_path / "late.xyz").write_text("".join(lines))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    back = read_point_cloud(tmp_path / "late.xyz")
+    np.testing.assert_array_equal(back.points, pts)
+    assert back.attributes == {}
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'late.xyz'}: columns after x y z are not kept: line 1901 has 6 columns, the first data line 5"]
+
+
+_CELLS = ["1", "-2.5", "3,25", "1e3", "nan", "abc", "", "14.03.2024 10:15:00,000", "Punkt 1, Gruppe A", "0,5",
+          "1_0", "#", "12.5", "-0.125", "255"]
+
+
+@pytest.mark.parametrize("name", ["c.xyz", "c.pts"])
+def test_reading_the_columns_never_changes_the_points_or_the_error(tmp_path, name):
+    """Text made of random cells, separators and headers (derandomised): with the columns after x y z
+    read, x y z are the same as without (or the error is), and every attribute has one value per point."""
+    hypothesis = pytest.importorskip("hypothesis")
+    st = hypothesis.strategies
+
+    lines = st.lists(st.lists(st.sampled_from(_CELLS), min_size=1, max_size=7), min_size=1, max_size=12)
+    header = st.sampled_from(["", "X Y Z R G B\n", "//X,Y,Z,Intensity\n", "# x y z a b\n", "X;Y;Z;I\n", "12\n"])
+
+    @hypothesis.settings(max_examples=150, deadline=None, derandomize=True, database=None,
+                         suppress_health_check=[hypothesis.HealthCheck.function_scoped_fixture])
+    @hypothesis.given(header=header, rows=lines, sep=st.sampled_from([" ", "\t", ",", ";", "; ", "\t\t"]))
+    def check(header, rows, sep):
+        path = tmp_path / name
+        path.write_text(header + "".join(sep.join(r) + "\n" for r in rows))
+        got = []
+        for attributes in (False, True):
+            try:
+                cloud = read_point_cloud(path, attributes=attributes, min_points=1, degenerate_ok=True)
+                got.append((cloud.points, cloud.attributes))
+            except PointCloudError as exc:
+                assert "malformed" not in str(exc)  # a reader bug, not a message about the file
+                got.append((str(exc), {}))
+        (before, _), (after, attrs) = got
+        if isinstance(before, str):
+            assert after == before
+        else:
+            np.testing.assert_array_equal(after, before)
+            assert all(v.shape == (len(after),) and v.dtype == np.float64 for v in attrs.values())
+
+    check()
