@@ -289,3 +289,17 @@ def test_reading_the_columns_never_changes_the_points_or_the_error(tmp_path, nam
             assert all(v.shape == (len(after),) and v.dtype == np.float64 for v in attrs.values())
 
     check()
+
+
+def test_a_leading_line_of_only_separators_is_a_blank_line(tmp_path):
+    """An empty spreadsheet row (``;;;``) before the header or the points was "malformed XYZ text file
+    (its data does not match its header)" (a reader crash); further down it was always a blank line."""
+    pts = _points(20)
+    rows = "".join(";".join(map(_decimal_comma, p)) + ";7\n" for p in pts)
+    path = tmp_path / "excel.txt"
+    path.write_text(";;;\nX;Y;Z;I\n;;;\n" + rows + ";;;\n")
+    back = read_point_cloud(path)
+    np.testing.assert_array_equal(back.points, pts)
+    assert list(back.attributes) == ["intensity"]
+    path.write_text(",\n")
+    _error(path, "contains no points")

@@ -317,6 +317,9 @@ def _block_lines(path: Path, block: bytes, lines_before: int,
                 continue
             table = _dialect(s, path, lines_before + start + 1)
             toks = s.encode("latin-1").translate(table).decode("latin-1").split()
+            if not toks:  # only separators (an empty spreadsheet row): blank, as further down
+                start += 1
+                continue
             if _header_line(toks):
                 state["names_line"] = s
                 start += 1
