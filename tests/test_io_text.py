@@ -10,7 +10,15 @@ import pytest
 from click.testing import CliRunner
 
 from gctr_cli import cli
-from gctr_cli.io import PointCloud, PointCloudError, load_point_cloud, read_point_cloud, write_matrix, write_point_cloud
+from gctr_cli.io import (
+    PointCloud,
+    PointCloudError,
+    load_point_cloud,
+    read_point_cloud,
+    write_aligned,
+    write_matrix,
+    write_point_cloud,
+)
 
 RNG = np.random.default_rng(2024)
 #: past the first 64 KiB block, so numpy's fast path reads most of the lines
@@ -303,3 +311,97 @@ def test_a_leading_line_of_only_separators_is_a_blank_line(tmp_path):
     assert list(back.attributes) == ["intensity"]
     path.write_text(",\n")
     _error(path, "contains no points")
+
+
+# ----------------------------------------------------------------------------------------------------
+# .pts output: the count line and rows x y z [intensity] [red green blue], which other tools read
+# ----------------------------------------------------------------------------------------------------
+
+
+def _pts_cloud(n: int, layout: str) -> tuple[PointCloud, list[str]]:
+    """A cloud with the attributes of ``layout`` and the columns its .pts file should hold after x y z."""
+    pts = np.round(RNG.normal(size=(n, 3)) * 10 + [500_000.0, 5_400_000.0, 300.0], 6)
+    rgb = {k: RNG.integers(0, 256, n).astype(np.uint8) for k in ("red", "green", "blue")}
+    intensity = {"intensity": RNG.integers(0, 4096, n).astype(np.uint16)}
+    attrs = {"xyz": {}, "intensity": intensity, "rgb": rgb, "intensity_rgb": {**rgb, **intensity}}[layout]
+    return PointCloud(pts, attrs), [k for k in ("intensity", "red", "green", "blue") if k in attrs]
+
+
+@pytest.mark.parametrize("layout, n_columns", [("xyz", 3), ("intensity", 4), ("rgb", 6), ("intensity_rgb", 7)])
+def test_pts_output_is_the_count_and_the_rows_open3d_reads(tmp_path, caplog, layout, n_columns):
+    """gctr wrote a ``# x y z red green blue`` line after the count; PTS has no comments, and Open3D read
+    every point as (0, 0, 0). Now: the count line, then x y z [intensity] [red green blue]."""
+    import open3d as o3d
+
+    cloud, columns = _pts_cloud(500, layout)
+    path = tmp_path / "out.pts"
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(path, cloud)
+    assert not caplog.records
+    lines = path.read_text().splitlines()
+    assert lines[0] == "500" and len(lines) == 501
+    assert {len(line.split()) for line in lines[1:]} == {n_columns}
+    o3d_cloud = o3d.io.read_point_cloud(str(path))
+    np.testing.assert_array_equal(np.asarray(o3d_cloud.points), cloud.points)
+    if "red" in columns:
+        rgb = np.stack([cloud.attributes[k] for k in ("red", "green", "blue")], axis=1)
+        np.testing.assert_allclose(np.asarray(o3d_cloud.colors), rgb / 255.0, atol=1e-12)
+    else:
+        assert not o3d_cloud.has_colors()
+    back = read_point_cloud(path)  # the Leica layout names the columns again
+    np.testing.assert_array_equal(back.points, cloud.points)
+    assert list(back.attributes) == columns
+    for k in columns:
+        np.testing.assert_array_equal(back.attributes[k], cloud.attributes[k], err_msg=k)
+
+
+def test_pts_output_of_a_las_cloud_keeps_intensity_and_colours_and_names_the_rest(tmp_path, caplog):
+    """A LAS cloud (16-bit colours, classification, GPS time, flags ...) moved to .pts: intensity and the
+    colours as 8 bits are written, every other attribute is named in one warning that points to the
+    formats that keep them."""
+    import open3d as o3d
+
+    n = 400
+    pts = RNG.normal(size=(n, 3)) * 50 + [500_000.0, 5_400_000.0, 300.0]
+    rgb8 = RNG.integers(0, 256, size=(n, 3))
+    attrs = {"intensity": RNG.integers(0, 65536, n).astype(np.uint16),
+             "classification": RNG.integers(0, 10, n).astype(np.uint8), "gps_time": RNG.uniform(0, 1e5, n),
+             **{k: (rgb8[:, j] * 257).astype(np.uint16) for j, k in enumerate(("red", "green", "blue"))}}
+    write_point_cloud(tmp_path / "scan.las", PointCloud(pts, attrs))
+    las = read_point_cloud(tmp_path / "scan.las")
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_aligned(tmp_path / "scan.las", np.eye(4), tmp_path / "out.pts")
+    others = [k for k in las.attributes if k not in ("intensity", "red", "green", "blue")]
+    assert {"classification", "gps_time", "return_number"} <= set(others)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'out.pts'}: attributes not written: {', '.join(others)} (a .pts file holds x y z, intensity "
+        "and red green blue 0..255 only); write .ply, .pcd or .las to keep them"]
+    lines = (tmp_path / "out.pts").read_text().splitlines()
+    assert lines[0] == str(n) and {len(line.split()) for line in lines[1:]} == {7}
+    o3d_cloud = o3d.io.read_point_cloud(str(tmp_path / "out.pts"))
+    np.testing.assert_allclose(np.asarray(o3d_cloud.points), las.points, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(o3d_cloud.colors), rgb8 / 255.0, atol=1e-12)
+    back = read_point_cloud(tmp_path / "out.pts").attributes
+    np.testing.assert_array_equal(back["intensity"], las.attributes["intensity"])
+    np.testing.assert_array_equal(np.stack([back[k] for k in ("red", "green", "blue")], axis=1), rgb8)
+
+
+@pytest.mark.parametrize("colours, named", [
+    ({"red": np.full(20, 0.5), "green": np.full(20, 0.25), "blue": np.ones(20)}, "red, green, blue"),  # 0..1
+    ({"red": np.full(20, 300.0), "green": np.ones(20), "blue": np.ones(20)}, "red, green, blue"),  # (as text)
+    ({"red": np.full(20, 7, np.uint8), "nx": np.ones(20)}, "red, nx"),  # one colour alone
+])
+def test_pts_colours_are_whole_numbers_0_to_255_or_not_written(tmp_path, caplog, colours, named):
+    """Open3D reads PTS colours with ``%d``: ``0.5`` broke the line (the point read as garbage) and 300
+    wrapped to 44. Colours that are not whole numbers 0..255 are named, not written (integer colours
+    above 255 are 16-bit ones: their high byte is written, as in PLY and PCD)."""
+    import open3d as o3d
+
+    pts = RNG.normal(size=(20, 3))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(tmp_path / "c.pts", PointCloud(pts, colours))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'c.pts'}: attributes not written: {named} (a .pts file holds x y z, intensity and red "
+        "green blue 0..255 only); write .ply, .pcd or .las to keep them"]
+    assert {len(line.split()) for line in (tmp_path / "c.pts").read_text().splitlines()[1:]} == {3}
+    np.testing.assert_array_equal(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "c.pts")).points), pts)

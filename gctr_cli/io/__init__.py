@@ -20,7 +20,8 @@ extension             read                         write
 ``.ply``              ASCII, binary LE/BE          binary LE, float64 x y z + attributes
 ``.pcd``              ascii, binary, compressed    binary float64 x y z + attributes (aligned
                                                    clouds: binary float32, or ASCII float64)
-``.xyz .txt .pts``    text columns                 ``%.17g`` text (+ attribute columns)
+``.xyz .txt .pts``    text columns (+ attributes)  ``%.17g`` text (+ attribute columns; .pts:
+                                                   intensity, red green blue)
 ``.las .laz``         LAS 1.0-1.4, LAZ (lazrs)     LAS/LAZ 1.4 with attributes
 ``.e57``              all scans, poses applied     --
 ====================  ===========================  ==========================================
@@ -130,8 +131,10 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     in LAS/LAZ 1.4 with a power-of-ten scale that quantises each axis to at most span / 4e8 (2.5 µm on
     a 1 km tile). Attributes are kept where the format allows: PLY and PCD keep every numeric attribute,
     LAS fills its standard dimensions (intensity, classification, colours ...) and stores the others
-    as extra bytes, text files get one column per attribute after ``x y z``. Missing parent folders
-    are created; the write is atomic (temporary file in the same folder, then ``os.replace``).
+    as extra bytes, ``.xyz``/``.txt`` files get one column per attribute after ``x y z`` (named in a
+    ``# x y z ...`` line), ``.pts`` files only intensity and 8-bit red green blue, the columns PTS
+    readers know (the others are named in a warning). Missing parent folders are created; the write
+    is atomic (temporary file in the same folder, then ``os.replace``).
 
     Interoperability note: Open3D 0.20's legacy PCD reader silently returns zeros for ``SIZE 8``
     (double) fields in binary PCD files, but reads them exactly from ASCII ones. With ``open3d_pcd``, a

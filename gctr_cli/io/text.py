@@ -19,6 +19,11 @@ intensity red`` as gctr writes it, ``X Y Z R G B``, ``//X,Y,Z,Intensity``), else
 Leica layout, else ``column_4`` ... (:func:`_attribute_names`). Otherwise x y z are read and one
 warning names the first line that does not fit: columns are never dropped without a word.
 
+Written (:func:`text_bytes`, :func:`pts_bytes`) as ``%.17g`` rows: ``.xyz`` / ``.txt`` with every
+numeric attribute after x y z, named in a ``# x y z name ...`` line; ``.pts`` as the point count
+and rows ``x y z [intensity] [red green blue]`` only, the layouts PTS readers know by their number of
+columns (a comment line made Open3D read every point as (0, 0, 0)).
+
 Read in blocks of whole lines (``np.loadtxt`` for plain numeric blocks), so memory follows the number
 of points, not the size of the text: about 180 MB and 7 s for 2 million points. A line longer than
 :data:`MAX_LINE` bytes (e.g. a 100 MB file without line ends) is an error, never a huge allocation.
@@ -36,13 +41,13 @@ from typing import Any
 
 import numpy as np
 
-from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud
+from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, integer_misfit
 from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.ply import format_columns
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["read_text", "text_bytes"]
+__all__ = ["pts_bytes", "read_text", "text_bytes"]
 
 #: the first block of a text cloud is small (header detection runs line by line); later ones are large
 _TEXT_FIRST_BLOCK = 1 << 16
@@ -425,14 +430,43 @@ def _extra_values(rows: list[list[str]], linenos: list[int], ncols: int, state: 
     return values.reshape(len(rows), max(ncols - 3, 0))
 
 
-def text_bytes(cloud: PointCloud, with_count_line: bool = False) -> bytes:
-    """Text rows ``x y z [attributes...]`` (``%.17g``, exact round trip). With attributes, a
-    ``# x y z name ...`` comment line names the columns; ``.pts`` starts with a point-count line."""
+def text_bytes(cloud: PointCloud) -> bytes:
+    """Text rows ``x y z [attributes...]`` (``%.17g``, exact round trip) of an ``.xyz`` / ``.txt`` file;
+    with attributes, a ``# x y z name ...`` comment line names the columns."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     n = len(pts)
     extra = [(k, np.asarray(v)) for k, v in cloud.attributes.items()
              if np.asarray(v).shape == (n,) and np.asarray(v).dtype.kind in "fiu"]
-    head = f"{n}\n" if with_count_line else ""
+    head = ""
     if extra:
         head += "# x y z " + " ".join("_".join(str(k).split()) for k, _ in extra) + "\n"
     return head.encode("ascii") + format_columns([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra])
+
+
+def pts_bytes(cloud: PointCloud, path: Path | None = None) -> bytes:
+    """A ``.pts`` file: the point count, then rows ``x y z [intensity] [red green blue]`` and nothing else.
+
+    PTS has no comments and no names: readers know the columns by their number (Open3D takes 3, 4, 6
+    or 7 and read a ``# x y z ...`` line as points (0, 0, 0), or no points at all). Colours are written
+    when all three are whole numbers 0..255 (16-bit colours as their high byte), which Open3D reads
+    with ``%d``; every other attribute is left out with one warning naming them (``path``)."""
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    n = len(pts)
+    attrs = eight_bit_colours({k: np.asarray(v) for k, v in cloud.attributes.items()})
+    cols = [pts[:, 0], pts[:, 1], pts[:, 2]]
+    written = []
+    intensity = attrs.get("intensity")
+    if intensity is not None and intensity.shape == (n,) and intensity.dtype.kind in "fiu":
+        cols.append(intensity)
+        written.append("intensity")
+    rgb = [attrs.get(k) for k in ("red", "green", "blue")]
+    if all(v is not None and v.shape == (n,) and v.dtype.kind in "fiu" and integer_misfit(v, 0, 255) is None
+           for v in rgb):
+        cols += [np.asarray(v).astype(np.uint8) for v in rgb]  # whole numbers: written as integers
+        written += ["red", "green", "blue"]
+    left_out = [str(k) for k in cloud.attributes if k not in written]
+    if left_out:
+        logger.warning("%s: attributes not written: %s (a .pts file holds x y z, intensity and red green blue "
+                       "0..255 only); write .ply, .pcd or .las to keep them", clean(path or "PTS output"),
+                       clean(", ".join(left_out)))
+    return f"{n}\n".encode("ascii") + format_columns(cols)
