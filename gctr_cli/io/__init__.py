@@ -20,7 +20,8 @@ extension             read                         write
 ``.ply``              ASCII, binary LE/BE          binary LE, float64 x y z + attributes
 ``.pcd``              ascii, binary, compressed    binary float64 x y z + attributes (aligned
                                                    clouds: binary float32, or ASCII float64)
-``.xyz .txt .pts``    text columns                 ``%.17g`` text (+ attribute columns)
+``.xyz .txt .pts``    text columns (+ attributes)  ``%.17g`` text (+ attribute columns; .pts:
+                                                   intensity, red green blue)
 ``.las .laz``         LAS 1.0-1.4, LAZ (lazrs)     LAS/LAZ 1.4 with attributes; from a LAS
                                                    source: its version, point format, CRS
                                                    records and header ids
@@ -133,11 +134,13 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     a 1 km tile), or, for a cloud read from LAS/LAZ, with the source's scale (times the scale factor
     of the transform since) and offset, which keeps every digit the source had. Attributes are kept
     where the format allows: PLY and PCD keep every numeric attribute, LAS fills its standard dimensions
-    (intensity, classification, colours ...) and stores the others as extra bytes, text files get one
-    column per attribute after ``x y z``. A LAS/LAZ output of a LAS source keeps the source's version,
-    point format, CRS records and header ids (:func:`gctr_cli.io.las.las_bytes`); any other output of
-    it logs a warning when the source's CRS is lost. Missing parent folders are created; the write is
-    atomic (temporary file in the same folder, then ``os.replace``).
+    (intensity, classification, colours ...) and stores the others as extra bytes, ``.xyz``/``.txt``
+    files get one column per attribute after ``x y z`` (named in a ``# x y z ...`` line), ``.pts`` files
+    only intensity and 8-bit red green blue, the columns PTS readers know (the others are named in a
+    warning). A LAS/LAZ output of a LAS source keeps the source's version, point format, CRS records and
+    header ids (:func:`gctr_cli.io.las.las_bytes`); any other output of it logs a warning when the
+    source's CRS is lost. Missing parent folders are created; the write is atomic (temporary file in the
+    same folder, then ``os.replace``).
 
     Interoperability note: Open3D 0.20's legacy PCD reader silently returns zeros for ``SIZE 8``
     (double) fields in binary PCD files, but reads them exactly from ASCII ones. With ``open3d_pcd``, a
