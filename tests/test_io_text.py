@@ -116,7 +116,7 @@ def test_gctr_text_output_round_trips_with_its_attribute_columns(tmp_path):
         np.testing.assert_array_equal(back.points, pts)
         assert list(back.attributes) == list(attrs)
         for k, v in attrs.items():
-            assert back.attributes[k].dtype == np.float64, k
+            assert back.attributes[k].dtype == (np.uint8 if k in ("red", "green", "blue") else np.float64), k
             np.testing.assert_array_equal(back.attributes[k], v.astype(np.float64), err_msg=k)
 
 
@@ -405,3 +405,21 @@ def test_pts_colours_are_whole_numbers_0_to_255_or_not_written(tmp_path, caplog,
         "green blue 0..255 only); write .ply, .pcd or .las to keep them"]
     assert {len(line.split()) for line in (tmp_path / "c.pts").read_text().splitlines()[1:]} == {3}
     np.testing.assert_array_equal(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "c.pts")).points), pts)
+
+
+def test_text_colours_reach_a_las_output_at_their_brightness(tmp_path):
+    """Whole 0..255 colour columns are read as 8-bit colours, so LAS widens them to its 16 bits (as floats
+    they were written as 121 of 65535: nearly black); colours that are not whole 0..255 stay floats."""
+    import laspy
+
+    pts, extra = _points(200), np.hstack([_columns(200, 1), _columns(200, 3)])
+    (tmp_path / "scan.pts").write_text("200\n" + _rows(pts, extra))
+    write_matrix(tmp_path / "T.txt", np.eye(4))
+    res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "T.txt"), str(tmp_path / "scan.pts"),
+                                        "-o", str(tmp_path / "out.las")])
+    assert res.exit_code == 0, res.output
+    las = laspy.read(tmp_path / "out.las")
+    np.testing.assert_array_equal(np.asarray(las.red), extra[:, 1].astype(np.uint16) * 257)
+    np.testing.assert_array_equal(np.asarray(las.blue), extra[:, 3].astype(np.uint16) * 257)
+    (tmp_path / "half.xyz").write_text("# x y z red green blue\n" + _rows(pts, np.full((200, 3), 0.5)))
+    assert read_point_cloud(tmp_path / "half.xyz").attributes["red"].dtype == np.float64

@@ -45,7 +45,7 @@ from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, int
 from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.ply import format_columns
 
-logger = logging.getLogger(__name__)
+logger = logging.getLogger("gctr_cli.io")
 
 __all__ = ["pts_bytes", "read_text", "text_bytes"]
 
@@ -210,8 +210,21 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     elif state["extras"] and state["ncols"] > 3:
         values = np.concatenate(extra_parts)
         names = _attribute_names(state["names_line"], state["ncols"], state["table"], path.suffix.lower() == ".pts")
-        attrs = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
+        attrs = _eight_bit_colours({name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)})
     return PointCloud(pts, attrs, "xyz")
+
+
+def _eight_bit_colours(attrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``red green blue`` columns of whole numbers 0..255 as uint8: colours, as the binary formats hold
+    them, so that a LAS output widens them to its 16 bits (as floats they were written as 0..255 of
+    65535: nearly black)."""
+    if not all(k in attrs for k in ("red", "green", "blue")):
+        return attrs
+    rgb = [attrs[k] for k in ("red", "green", "blue")]
+    stacked = np.stack(rgb)
+    if not (np.all(stacked == np.round(stacked)) and stacked.min() >= 0 and stacked.max() <= 255):
+        return attrs
+    return {**attrs, **{k: v.astype(np.uint8) for k, v in zip(("red", "green", "blue"), rgb)}}
 
 
 def _dialect(line: str, path: Path, lineno: int) -> bytes:
