@@ -107,7 +107,9 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     if len(src.salient) < 4 or len(tgt.salient) < 4:
         raise DegenerateCloudError(f"too few salient points (source {len(src.salient)}, target "
                                    f"{len(tgt.salient)}); the clouds are too small or too sparse for the "
-                                   "supervoxel resolution")
+                                   f"supervoxel resolution (source {len(ns.points)} points, target "
+                                   f"{len(nt.points)}); for sparse clouds coarser supervoxels may do, e.g. "
+                                   "engine.supervoxel.voxel_ratio 0.05, seed_ratio 0.2 and min_voxels 1 in the config")
     # Scale bounds in normalised units: s_orig = s_norm * size_t / size_s.
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size
