@@ -237,6 +237,8 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
                 f"alignment ({moved:.2f} of the target's size away); at confidence "
                 f"{truncated(verdict.confidence)}, below verdict.reverse_below "
                 f"{cfg.verdict.reverse_below:.2f}, an answer needs that confirmation")
+    if status == "failed":
+        message += units_hint(nt.size / ns.size, cfg.scale_bounds)
     mirror: dict[str, float] = {}
     if status == "ok" and confirm and verdict.score < cfg.verdict.mirror_below:
         # A mirror image (a cloud with a flipped axis) has no right rotation, but the best one can stand out
@@ -335,6 +337,17 @@ def mirror_config(cfg: EngineConfig, overlap: float) -> EngineConfig:
     if cfg.overlap == "auto" and any(abs(overlap - r) < 1e-9 for r in cfg.overlap_candidates):
         update["overlap"] = overlap
     return cfg.model_copy(update=update)
+
+
+def units_hint(size_ratio: float, scale_bounds: tuple[float, float]) -> str:
+    """What to add to a refusal when the target is more than ``scale_bounds`` allows larger (or smaller)
+    than the source: clouds in different units (inches and metres, 39x) otherwise fail as "too weak
+    evidence" or "low confidence", with nothing that points at the scale."""
+    lo, hi = scale_bounds
+    if lo <= size_ratio <= hi:
+        return ""
+    return (f"; the target is {size_ratio:.3g} times the source's size, outside engine.scale_bounds [{lo}, {hi}]: "
+            "if their units differ (mm and m: 1000), widen scale_bounds")
 
 
 def reverse_displacement(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, T_n: np.ndarray,
