@@ -222,7 +222,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         status, refusal, message = "failed", "scale_held" if held else "low_confidence", refusal_message(verdict, cfg)
         if held:
             message += (f"; its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] "
-                        f"(without it: {free:.4g})")
+                        f"(refined without it: {free:.4g}, which at this confidence is no sign that the units differ)")
     elif held:
         status, refusal = "failed", "scale_held"
         message = (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}]: refined "
