@@ -469,3 +469,17 @@ def test_a_true_scale_at_or_just_inside_a_bound_is_accepted(true_scale, bounds, 
     assert res.status == "ok", res.message
     e = transform_errors(res.transform, T, bbox_diagonal(tgt))
     assert e.rot_err_deg < 0.5 and e.scale_err < 0.002, e
+
+
+def test_a_refusal_of_clouds_in_other_units_says_to_widen_the_scale_bounds():
+    """The bunny against itself at 0.08 of its size (beyond scale_bounds [0.1, 10], as clouds in other units are):
+    refused, and the message says that the sizes differ beyond the bounds and what to widen; a refusal of
+    clouds of similar size says nothing of units."""
+    from gctr_cli.engine.gctr import units_hint
+
+    src = _model("bunny")[::4]
+    res = register(src, src * 0.08, EngineConfig(), seed=0)
+    assert res.status == "failed"
+    assert "times the source's size, outside engine.scale_bounds [0.1, 10.0]" in res.message, res.message
+    assert "widen scale_bounds" in res.message
+    assert units_hint(2.0, (0.1, 10.0)) == "" and units_hint(0.05, (0.1, 10.0)).startswith("; the target is 0.05")

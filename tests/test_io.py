@@ -213,6 +213,27 @@ def test_ply_binary_vertex_with_list_property(tmp_path, rng):
     np.testing.assert_array_equal(load_point_cloud(path), pts)
 
 
+def test_ply_vertex_list_properties_not_kept_are_named_once(tmp_path, rng, caplog):
+    """Per-vertex lists (here a variable-length 'tags' and a fixed 'rgb_list') were dropped without a word."""
+    pts = rng.normal(size=(12, 3))
+    body = b"".join(struct.pack("<d", p[0]) + struct.pack("<B", k) + struct.pack(f"<{k}h", *range(k))
+                    + struct.pack("<dd", p[1], p[2]) + struct.pack("<B3B", 3, 1, 2, 3) + struct.pack("<f", 0.5)
+                    for k, p in zip(range(12), pts))
+    hdr = ply_header("binary_little_endian", [("vertex", 12, ["double x", "list uchar short tags", "double y",
+                                                             "double z", "list uchar uchar rgb_list", "float q"])])
+    path = tmp_path / "vl.ply"
+    path.write_bytes(hdr + body)
+    caplog.set_level(logging.WARNING, logger="gctr_cli.io")
+    cloud = read_point_cloud(path)
+    np.testing.assert_array_equal(cloud.points, pts)
+    np.testing.assert_array_equal(cloud.attributes["q"], np.full(12, 0.5, np.float32))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: vertex list properties 'tags', 'rgb_list' not kept (gctr keeps one value per vertex and property)"]
+    caplog.clear()
+    load_point_cloud(path)  # coordinates only: nothing is dropped that was asked for
+    assert not caplog.records
+
+
 def test_ply_ascii_element_before_vertex_and_list_in_vertex(tmp_path, rng):
     pts = np.round(rng.normal(size=(12, 3)), 6)
     lines = ["2 7 8", "0", "1 9"]  # 'grid' element with a list
@@ -362,6 +383,25 @@ def test_ascii_rows_beyond_the_declared_count_are_named(tmp_path, cloud, ext, ca
     assert f"{path}: 2 more data lines after the {len(cloud)}" in caplog.text
 
 
+def test_binary_pcd_records_beyond_the_declared_count_are_named(tmp_path, cloud, caplog):
+    """A binary PCD whose POINTS is below the records present was cut without a word, where the ASCII
+    reader warned; POINTS 0 said 'contains no points'."""
+    body = cloud.astype("<f4").tobytes()
+    header = ("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {0}\nHEIGHT 1\nPOINTS {0}\n"
+              "DATA binary\n")
+    path = tmp_path / "low.pcd"
+    path.write_bytes(header.format(150).encode() + body + b"\n")  # a stray newline is not a record
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        np.testing.assert_array_equal(load_point_cloud(path), cloud[:150].astype(np.float32))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: 50 more point records after the 150 points the header declares (ignored)"]
+    path.write_bytes(header.format(0).encode() + body)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert str(ei.value) == (f"{path}: the header declares 0 points but 200 point records follow (a writer that "
+                             "never filled in POINTS/WIDTH?)")
+
+
 def test_ply_non_numeric_ascii_value(tmp_path):
     path = tmp_path / "word.ply"
     rows = "\n".join(f"{i} {i * i} {i % 3}" for i in range(20)).replace("9 81", "9 abc")
@@ -400,6 +440,72 @@ def test_pcd_written_by_open3d_binary(tmp_path, rng, compressed):
     np.testing.assert_array_equal(out, np.asarray(o3d().io.read_point_cloud(str(path)).points))
 
 
+def sensor_pcd(path: Path, data: str, n: int = 60) -> dict[str, np.ndarray]:
+    """A PCD file as a scanner driver writes it: a COUNT 3 field, a packed rgba with alpha, a sensor
+    VIEWPOINT; returns the values written."""
+    rng = np.random.default_rng(12)
+    v = {"xyz": rng.normal(size=(n, 3)).astype(np.float32), "hist": rng.integers(0, 1000, (n, 3)).astype(np.uint16),
+         "rgba": rng.integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32)}
+    header = ("VERSION 0.7\nFIELDS x y z hist rgba\nSIZE 4 4 4 2 4\nTYPE F F F U U\nCOUNT 1 1 1 3 1\n"
+              f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 10 20 1.5 0.7071067811865476 0 0 0.7071067811865476\nPOINTS {n}\n"
+              f"DATA {data}\n").encode()
+    if data == "ascii":
+        body = "".join(f"{x!r} {y!r} {z!r} {h[0]} {h[1]} {h[2]} {c}\n" for (x, y, z), h, c in
+                       zip(v["xyz"].astype(float).tolist(), v["hist"], v["rgba"])).encode()
+    else:
+        rec = np.empty(n, [("xyz", "<f4", (3,)), ("hist", "<u2", (3,)), ("rgba", "<u4")])
+        rec["xyz"], rec["hist"], rec["rgba"] = v["xyz"], v["hist"], v["rgba"]
+        body = rec.tobytes()
+        if data == "binary_compressed":  # one column after the other
+            import lzf
+
+            raw = b"".join(np.ascontiguousarray(v["xyz"][:, j]).tobytes() for j in range(3))
+            raw += v["hist"].tobytes() + v["rgba"].tobytes()
+            packed = lzf.compress(raw, 2 * len(raw) + 64)  # random values do not shrink
+            body = struct.pack("<II", len(packed), len(raw)) + packed
+    path.write_bytes(header + body)
+    return v
+
+
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
+def test_pcd_count_3_fields_rgba_alpha_and_viewpoint_are_kept(tmp_path, data, caplog):
+    """A field of COUNT 3 and rgba's alpha were dropped without a word; a non-identity VIEWPOINT was
+    ignored on read and written back as the identity."""
+    v = sensor_pcd(tmp_path / "scan.pcd", data)
+    caplog.set_level(logging.WARNING, logger="gctr_cli.io")
+    cloud = read_point_cloud(tmp_path / "scan.pcd")
+    np.testing.assert_array_equal(cloud.points, v["xyz"])
+    for j in range(3):
+        np.testing.assert_array_equal(cloud.attributes[f"hist_{j}"], v["hist"][:, j])
+    np.testing.assert_array_equal(cloud.attributes["alpha"], v["rgba"] >> 24)
+    np.testing.assert_array_equal(cloud.attributes["red"], (v["rgba"] >> 16) & 0xFF)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'scan.pcd'}: the PCD VIEWPOINT (the sensor's pose: translation 10 20 1.5, rotation "
+        "quaternion w x y z 0.707107 0 0 0.707107) is not applied to the points, as in PCL; only a PCD output "
+        "keeps it, moved with the points"]
+
+    from gctr_cli.io import write_aligned
+
+    write_aligned(tmp_path / "scan.pcd", np.eye(4), tmp_path / "same.pcd")
+    text = (tmp_path / "same.pcd").read_bytes()
+    assert b"\nVIEWPOINT 10 20 1.5 0.7071067811865476 0 0 0.7071067811865476\n" in text
+    assert b"FIELDS x y z rgba hist_0 hist_1 hist_2\n" in text
+    back = read_point_cloud(tmp_path / "same.pcd")
+    for k in ("hist_0", "alpha", "red", "blue"):
+        np.testing.assert_array_equal(back.attributes[k], cloud.attributes[k], err_msg=k)
+
+    T = to_matrix(2.0, rotation_z(90), [1.0, -1.0, 0.0])
+    write_aligned(tmp_path / "scan.pcd", T, tmp_path / "moved.pcd")
+    line = next(x for x in (tmp_path / "moved.pcd").read_text("latin-1").splitlines() if x.startswith("VIEWPOINT"))
+    vp = np.array(line.split()[1:], dtype=float)
+    np.testing.assert_allclose(vp[:3], [-39.0, 19.0, 3.0], atol=1e-9)  # 2 * Rz(90) (10, 20, 1.5) + (1, -1, 0)
+    np.testing.assert_allclose(np.abs(vp[3:]), [0, 0, 0, 1], atol=1e-9)  # turned 90° twice about z: 180°
+
+    write_aligned(tmp_path / "scan.pcd", np.eye(4), tmp_path / "out.ply")
+    ply = read_point_cloud(tmp_path / "out.ply").attributes
+    assert {"hist_0", "hist_1", "hist_2", "alpha", "red"} <= ply.keys()
+
+
 def test_lzf_repeating_patterns(tmp_path):
     # Highly repetitive data exercises long and overlapping back references.
     n = 2000
@@ -412,6 +518,11 @@ def test_lzf_repeating_patterns(tmp_path):
     csize, usize = struct.unpack("<II", path.read_bytes().split(b"DATA binary_compressed\n", 1)[1][:8])
     assert csize < usize / 10  # really compressed
     np.testing.assert_array_equal(load_point_cloud(path), pts)
+
+
+def rotation_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
 
 def test_pcd_binary_field_order_padding_and_counts(tmp_path, rng):

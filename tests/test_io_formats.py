@@ -91,6 +91,47 @@ def test_las_truncated_and_lying_headers_are_refused_before_allocating(tmp_path)
         load_point_cloud(tmp_path / "stub.las")
 
 
+@pytest.mark.parametrize("version, fmt", [("1.2", 3), ("1.4", 7)])
+def test_las_records_beyond_the_declared_count_are_named(tmp_path, caplog, version, fmt):
+    """A header count below the records present cut LAS files without a word (ASCII PLY/PCD warn); a
+    count of 0 said 'contains no points'. LAS 1.4 counts the records up to the first EVLR."""
+    expected, las = utm_las(tmp_path / "ok.las", n=5000, version=version, point_format=fmt)
+    if version == "1.4":  # an EVLR after the points is not a point record
+        las.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("acme", 1, "notes", bytes(300))])
+        las.write(tmp_path / "ok.las")
+    data = bytearray((tmp_path / "ok.las").read_bytes())
+    at, size = (247, 8) if version == "1.4" else (107, 4)  # the 64-bit count of LAS 1.4, else the legacy one
+    for count in (4000, 0):
+        data[at : at + size] = count.to_bytes(size, "little")
+        (tmp_path / f"n{count}.las").write_bytes(bytes(data))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    np.testing.assert_array_equal(load_point_cloud(tmp_path / "n4000.las"), expected[:4000])
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'n4000.las'}: 1000 more point records after the 4000 points the header declares (ignored)"]
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "n0.las")
+    assert str(ei.value) == (f"{tmp_path / 'n0.las'}: the header declares 0 points but 5000 point records follow "
+                             "(a writer that never filled in the point count?)")
+
+
+def test_laz_chunks_beyond_the_declared_count_are_named(tmp_path, caplog):
+    """LAZ chunks hold 50,000 points: the chunk table (a few bytes) shows a count short by more than a chunk;
+    a smaller shortfall is known only by decompressing, and is not told."""
+    expected, _ = utm_las(tmp_path / "ok.laz", n=120_000)
+    data = bytearray((tmp_path / "ok.laz").read_bytes())
+    for count in (40_000, 119_000):
+        data[107:111] = count.to_bytes(4, "little")
+        (tmp_path / f"n{count}.laz").write_bytes(bytes(data))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    np.testing.assert_array_equal(load_point_cloud(tmp_path / "n40000.laz"), expected[:40_000])
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'n40000.laz'}: at least 60001 more point records after the 40000 points the header declares "
+        "(ignored)"]
+    caplog.clear()
+    assert len(load_point_cloud(tmp_path / "n119000.laz")) == 119_000
+    assert not caplog.records
+
+
 def test_laz_lying_point_count_and_corrupt_data(tmp_path):
     utm_las(tmp_path / "ok.laz", n=3000)
     data = bytearray((tmp_path / "ok.laz").read_bytes())
@@ -108,6 +149,226 @@ def test_laz_lying_point_count_and_corrupt_data(tmp_path):
     msg = str(ei.value)
     assert "garbage.laz" in msg and ("corrupt" in msg or "truncated" in msg), msg
     assert "Error" not in msg and "Exception" not in msg, msg
+
+
+WKT = ('PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+       'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
+       'PARAMETER["central_meridian",15],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],'
+       'UNIT["metre",1],AUTHORITY["EPSG","32633"]]')
+#: a GeoTIFF key directory (version 1.1.0, one key): ProjectedCSTypeGeoKey = EPSG 32633
+GEOKEYS = np.array([1, 1, 0, 1, 3072, 0, 1, 32633], dtype="<u2").tobytes()
+
+
+def riegl_las(path: Path, n: int = 3000, extra_vlrs=()):
+    """LAS 1.4 point format 6 as a survey scanner writes it: a WKT CRS record, adjusted standard GPS
+    time, system identifier, file source id, a private VLR and EVLR; returns the LasData written."""
+    rng = np.random.default_rng(4)
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.scales, hdr.offsets = np.array([0.001] * 3), UTM.copy()
+    hdr.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+    hdr.global_encoding.wkt = True
+    hdr.system_identifier = "RIEGL VQ-1560"
+    hdr.file_source_id = 17
+    hdr.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(WKT))
+    hdr.vlrs.append(laspy.VLR("acme", 7, "flight line", b"line 12"))
+    hdr.vlrs.extend(extra_vlrs)
+    # 76,800 bytes: too long for a VLR
+    hdr.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("acme", 8, "trajectory", bytes(range(256)) * 300)])
+    las = laspy.LasData(hdr)
+    las.X, las.Y = rng.integers(-(10**6), 10**6, n), rng.integers(-(10**6), 10**6, n)
+    las.Z = rng.integers(0, 10**5, n)
+    las.gps_time = 3.0e8 + np.arange(n) * 1e-5
+    las.write(path)
+    return las
+
+
+@pytest.mark.parametrize("ext", [".las", ".laz"])
+@pytest.mark.parametrize("moved", [False, True])
+def test_las_output_keeps_the_source_crs_gps_time_type_and_ids(tmp_path, ext, moved):
+    """Even an identity apply wrote GPS time type 0, no WKT bit, no records, system id 'OTHER': readers
+    then misread adjusted standard GPS time and the tile had no CRS."""
+    src = riegl_las(tmp_path / f"src{ext}")
+    T = to_matrix(1.0, rotation([0, 0, 1], 3), [4.0, -2.0, 0.5]) if moved else np.eye(4)
+    write_aligned(tmp_path / f"src{ext}", T, tmp_path / f"out{ext}")
+    out = laspy.read(tmp_path / f"out{ext}")
+    assert (str(out.header.version), out.header.point_format.id) == ("1.4", 6)
+    assert out.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    assert out.header.global_encoding.wkt
+    assert (out.header.system_identifier, out.header.file_source_id) == ("RIEGL VQ-1560", 17)
+    assert [(v.user_id, v.record_id, bytes(v.record_data_bytes())) for v in out.header.vlrs] == [
+        ("LASF_Projection", 2112, WKT.encode() + b"\0"), ("acme", 7, b"line 12")]
+    assert [(v.user_id, v.record_id, v.record_data) for v in out.evlrs] == [("acme", 8, bytes(range(256)) * 300)]
+    np.testing.assert_array_equal(out.gps_time, src.gps_time)
+    np.testing.assert_allclose(out.xyz, apply(T, np.asarray(src.xyz)), rtol=0, atol=1e-3)
+
+
+def test_las_1_2_keeps_version_format_and_geokeys_drops_a_stale_index_and_other_formats_warn(tmp_path, caplog):
+    """A LAS 1.2 format 3 tile stays LAS 1.2 format 3 with its GeoTIFF keys; a COPC index record, which
+    would describe the old file's point order, is left out with a warning; a PLY output says that the CRS
+    is not kept."""
+    _expected, _ = utm_las(tmp_path / "in.las", n=500)
+    las = laspy.read(tmp_path / "in.las")
+    las.header.vlrs.append(laspy.VLR("LASF_Projection", 34735, "GeoKeyDirectoryTag", GEOKEYS))
+    las.header.vlrs.append(laspy.VLR("copc", 1, "copc info", bytes(160)))
+    las.header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+    las.write(tmp_path / "geo.las")
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_aligned(tmp_path / "geo.las", np.eye(4), tmp_path / "out.las")
+    out = laspy.read(tmp_path / "out.las")
+    assert (str(out.header.version), out.header.point_format.id) == ("1.2", 3)
+    assert out.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    assert [(v.user_id, v.record_id, bytes(v.record_data_bytes())) for v in out.header.vlrs] == [
+        ("LASF_Projection", 34735, GEOKEYS)]
+    np.testing.assert_array_equal(out.red, las.red)
+    write_aligned(tmp_path / "geo.las", np.eye(4), tmp_path / "out.ply")
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'out.las'}: not kept from the LAS source: the COPC info record",
+        f"{tmp_path / 'out.ply'}: the coordinate reference system of the LAS source (GeoTIFF keys, EPSG 32633) "
+        "is not kept: PLY files cannot hold it"]
+
+
+def survey_laz(path: Path, n: int = 200_000, scales=(0.001, 0.001, 0.001)):
+    """A LAZ tile of a smooth surface (as airborne tiles compress) with millimetre scale and UTM offsets."""
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 500, (n, 2))
+    z = 20 * np.sin(xy[:, 0] / 50) + 10 * np.cos(xy[:, 1] / 70) + rng.normal(0, 0.05, n) + 120
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.scales, hdr.offsets = np.array(scales), np.array([500_000.0, 4_000_000.0, 0.0])
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = xy[:, 0] + 500_000, xy[:, 1] + 4_000_000, z
+    las.write(path)
+    return las
+
+
+def test_las_output_keeps_the_source_quantum_and_size(tmp_path):
+    """From a millimetre source, the writer chose 1e-7/1e-8 scales: an identity apply of a LAZ grew it
+    ~1.9-fold (12.3 -> 23.1 MB for 2M points) with digits the source never had. Now the source's scale
+    and offset are kept: the same integers, the same size."""
+    src = survey_laz(tmp_path / "tile.laz")
+    write_aligned(tmp_path / "tile.laz", np.eye(4), tmp_path / "same.laz")
+    out = laspy.read(tmp_path / "same.laz")
+    np.testing.assert_array_equal(out.header.scales, [0.001] * 3)
+    np.testing.assert_array_equal(out.header.offsets, [500_000.0, 4_000_000.0, 0.0])
+    for dim in ("X", "Y", "Z"):
+        np.testing.assert_array_equal(out[dim], src[dim])
+    size_in, size_out = (tmp_path / "tile.laz").stat().st_size, (tmp_path / "same.laz").stat().st_size
+    assert size_out < 1.02 * size_in, (size_in, size_out)
+
+
+@pytest.mark.parametrize("scale, shift, expected_scales", [
+    (1.0, [3.0, -4.0, 0.5], [0.01, 0.01, 0.001]),  # rigid: x and y mix x and y (1 cm), z stays z (1 mm)
+    (2.5, [3.0, -4.0, 0.5], [0.02, 0.02, 0.002]),  # 2.5 cm rounded down to 2 cm, 2.5 mm to 2 mm
+    (1.0, [3e7, 0.0, 0.0], [0.01, 0.01, 0.001]),  # x moved 30,000 km: the source's x offset no longer fits int32
+])
+def test_las_output_quantum_follows_the_transform_scale(tmp_path, scale, shift, expected_scales):
+    survey_laz(tmp_path / "tile.laz", n=5000, scales=(0.01, 0.01, 0.001))
+    T = to_matrix(scale, rotation([0, 0, 1], 30), shift)
+    moved = write_aligned(tmp_path / "tile.laz", T, tmp_path / "out.las")
+    out = laspy.read(tmp_path / "out.las")
+    np.testing.assert_array_equal(out.header.scales, expected_scales)
+    err = np.abs(np.asarray(out.xyz) - moved.points)
+    assert (err <= np.array(expected_scales) / 2 * (1 + 1e-6)).all(), err.max(axis=0)  # half a step
+    offsets = [500_000.0, 4_000_000.0, 0.0]  # the source's, where they fit
+    if shift[0] > 1e6:  # a whole number of 1000 steps below the minimum
+        offsets[0] = np.floor(moved.points[:, 0].min() / 10.0) * 10.0
+    np.testing.assert_array_equal(out.header.offsets, offsets)
+
+
+def test_laz_without_room_for_its_temporary_copy_says_so_instead_of_corrupt(tmp_path, monkeypatch):
+    """A LAZ file is decompressed to a temporary LAS copy; when that copy could not be written (a full
+    /tmp, ``ulimit -f``) a valid file was called 'corrupt or unsupported LAZ file'."""
+    import errno
+    import resource
+    import tempfile
+
+    from gctr_cli.io import las as las_module
+
+    utm_las(tmp_path / "ok.laz", n=20_000)  # 680 KB of point records uncompressed
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    real = las_module._decompress
+
+    def file_size_limit(path, out):  # runs in the forked child only: a 64 KB file-size limit, as ulimit -f
+        resource.setrlimit(resource.RLIMIT_FSIZE, (65536, 65536))
+        real(path, out)
+
+    monkeypatch.setattr(las_module, "_decompress", file_size_limit)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "ok.laz")
+    assert str(ei.value) == (f"{tmp_path / 'ok.laz'}: cannot decompress the LAZ file: no space for its temporary "
+                             f"copy in {tmp_path} (needs about 1 MB; set TMPDIR to a folder with room)")
+
+    def refused(path, out):
+        raise PermissionError(errno.EACCES, "Permission denied", str(out))
+
+    monkeypatch.setattr(las_module, "_decompress", refused)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "ok.laz")
+    assert str(ei.value) == (f"{tmp_path / 'ok.laz'}: cannot decompress the LAZ file: no permission to write its "
+                             f"temporary copy in {tmp_path} (set TMPDIR to a writable folder)")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "gone"))
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "ok.laz")
+    assert str(ei.value) == (f"{tmp_path / 'ok.laz'}: cannot decompress the LAZ file: cannot create a temporary "
+                             f"folder in {tmp_path / 'gone'} (No such file or directory; set TMPDIR to a writable "
+                             "folder with room)")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(las_module, "_decompress", real)
+    assert len(load_point_cloud(tmp_path / "ok.laz")) == 20_000
+
+
+def test_las_extra_dimensions_of_several_elements_and_scaled_ones_are_kept(tmp_path):
+    """A 3-element extra dimension (normals, 3 doubles) was missing from LAS and PLY outputs, and a scaled
+    one (u2 × 0.1) came back as float64: now PLY gets one column per element and LAS the source's own
+    declarations."""
+    n = 500
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.add_extra_dims([laspy.ExtraBytesParams("height", "f8"), laspy.ExtraBytesParams("normals", "3f8"),
+                        laspy.ExtraBytesParams("amplitude", "u2", description="dB", scales=np.array([0.1]),
+                                               offsets=np.array([0.0]))])
+    las = laspy.LasData(hdr)
+    rng = np.random.default_rng(8)
+    las.x, las.y, las.z = rng.normal(size=(3, n)) * 10
+    las.height = rng.normal(size=n)
+    las.normals = rng.normal(size=(n, 3))
+    las.amplitude = rng.integers(0, 6000, n) / 10
+    las.write(tmp_path / "extra.las")
+    T = to_matrix(1.0, rotation([1, 0, 0], 20), [1.0, 2.0, 3.0])
+    write_aligned(tmp_path / "extra.las", T, tmp_path / "out.las")
+    out = laspy.read(tmp_path / "out.las")
+    assert [(d.name, d.type_str(), None if d.scales is None else list(d.scales), d.description)
+            for d in out.point_format.extra_dimensions] == [
+        ("height", "f8", None, ""), ("normals", "3f8", None, ""), ("amplitude", "u2", [0.1], "dB")]
+    np.testing.assert_array_equal(out.normals, las.normals)
+    np.testing.assert_array_equal(out.points.array["amplitude"], las.points.array["amplitude"])  # the same integers
+    write_aligned(tmp_path / "extra.las", T, tmp_path / "out.ply")
+    ply = read_point_cloud(tmp_path / "out.ply").attributes
+    for j in range(3):
+        np.testing.assert_array_equal(ply[f"normals_{j}"], las.normals[:, j])
+    np.testing.assert_allclose(ply["amplitude"], las.amplitude)
+
+
+def test_scan_angle_rank_fills_the_scan_angle_of_formats_6_to_10(tmp_path):
+    """Formats 0-5 store the scan angle in whole degrees (scan_angle_rank), 6-10 in 0.006° steps
+    (scan_angle): a rank went into an extra dimension and the standard scan angle was written 0."""
+    pts = np.random.default_rng(9).normal(size=(20, 3))
+    rank = np.arange(-45, 55, 5, dtype=np.int8)
+    write_point_cloud(tmp_path / "out.las", PointCloud(pts, {"scan_angle_rank": rank}))
+    out = laspy.read(tmp_path / "out.las")
+    assert out.point_format.id == 6 and not list(out.point_format.extra_dimension_names)
+    np.testing.assert_array_equal(out.scan_angle, np.round(rank / 0.006))
+    np.testing.assert_allclose(out.scan_angle * 0.006, rank, atol=0.003)
+    # and back: a format 6 scan angle into a format 1 file (the source's format)
+    hdr = laspy.LasHeader(point_format=1, version="1.2")
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts.T
+    las.write(tmp_path / "pf1.las")
+    cloud = read_point_cloud(tmp_path / "pf1.las")
+    attrs = {k: v for k, v in cloud.attributes.items() if k != "scan_angle_rank"}
+    attrs["scan_angle"] = np.round(rank / 0.006).astype(np.int16)
+    write_point_cloud(tmp_path / "back.las", PointCloud(cloud.points, attrs, "las", cloud.meta))
+    back = laspy.read(tmp_path / "back.las")
+    assert back.point_format.id == 1 and not list(back.point_format.extra_dimension_names)
+    np.testing.assert_array_equal(back.scan_angle_rank, rank)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -138,6 +399,34 @@ def test_e57_merges_every_scan_with_its_pose(tmp_path):
     assert cloud.points.shape == (500, 3)
     np.testing.assert_allclose(cloud.points, expected, rtol=0, atol=1e-8)  # float64 all the way: 10 nm at UTM size
     assert cloud.attributes["intensity"].shape == (500,)
+
+
+def test_e57_says_which_scans_it_merged_what_it_drops_and_which_fields_it_does_not_keep(tmp_path, caplog):
+    """Intensity disappeared without a word when one of several scans lacked it, and so did the points
+    flagged invalid and the fields gctr does not read (row/column indices)."""
+    rng = np.random.default_rng(3)
+    e = pye57.E57(str(tmp_path / "site.e57"), mode="w")
+    a, b = rng.normal(size=(300, 3)), rng.normal(size=(200, 3))
+    state = np.zeros(300, np.int8)
+    state[::10] = 2  # 30 points without coordinates
+    e.write_scan_raw({"cartesianX": a[:, 0], "cartesianY": a[:, 1], "cartesianZ": a[:, 2], "intensity": np.ones(300),
+                      "cartesianInvalidState": state, "rowIndex": np.arange(300) // 20,
+                      "columnIndex": np.arange(300) % 20}, name="Station 1")
+    e.write_scan_raw({"cartesianX": b[:, 0], "cartesianY": b[:, 1], "cartesianZ": b[:, 2]}, name="Station 2",
+                     translation=np.array([5.0, 0.0, 0.0]))
+    e.close()
+    caplog.set_level("INFO", logger="gctr_cli.io")
+    cloud = read_point_cloud(tmp_path / "site.e57")
+    assert len(cloud) == 470 and "intensity" not in cloud.attributes
+    path = tmp_path / "site.e57"
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [
+        ("WARNING", f"{path}: not kept: intensity (missing from scan 1 'Station 2'; kept only when every scan has "
+                    "it); 'columnIndex', 'rowIndex' (point fields gctr does not read)"),
+        ("INFO", f"{path}: merged 2 scans, each placed by its pose: scan 0 'Station 1', scan 1 'Station 2'"),
+        ("WARNING", f"{path}: dropped 30 of 500 points the E57 file flags invalid (no coordinates measured)")]
+    caplog.clear()
+    load_point_cloud(path)  # coordinates only: no word about attributes
+    assert [r.levelname for r in caplog.records] == ["INFO", "WARNING"]
 
 
 def test_e57_scan_with_an_invalid_pose_is_named(tmp_path):
@@ -252,7 +541,10 @@ def test_text_writers_round_trip_exactly_with_attribute_columns(tmp_path, rich_c
     write_point_cloud(tmp_path / f"out{ext}", rich_cloud)
     np.testing.assert_array_equal(load_point_cloud(tmp_path / f"out{ext}"), rich_cloud.points)
     text = (tmp_path / f"out{ext}").read_text()
-    assert "# x y z intensity red green blue nx ny nz" in text
+    if ext == ".pts":  # no comment line: PTS readers take the columns by their number (tests/test_io_text.py)
+        assert "#" not in text and text.splitlines()[1].count(" ") == 6
+    else:
+        assert "# x y z intensity red green blue nx ny nz" in text
 
 
 def test_every_read_extension_is_listed_and_writers_cover_all_but_e57():

@@ -107,7 +107,9 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     if len(src.salient) < 4 or len(tgt.salient) < 4:
         raise DegenerateCloudError(f"too few salient points (source {len(src.salient)}, target "
                                    f"{len(tgt.salient)}); the clouds are too small or too sparse for the "
-                                   "supervoxel resolution")
+                                   f"supervoxel resolution (source {len(ns.points)} points, target "
+                                   f"{len(nt.points)}); for sparse clouds coarser supervoxels may do, e.g. "
+                                   "engine.supervoxel.voxel_ratio 0.05, seed_ratio 0.2 and min_voxels 1 in the config")
     # Scale bounds in normalised units: s_orig = s_norm * size_t / size_s.
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size
@@ -220,7 +222,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         status, refusal, message = "failed", "scale_held" if held else "low_confidence", refusal_message(verdict, cfg)
         if held:
             message += (f"; its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] "
-                        f"(without it: {free:.4g})")
+                        f"(refined without it: {free:.4g}, which at this confidence is no sign that the units differ)")
     elif held:
         status, refusal = "failed", "scale_held"
         message = (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}]: refined "
@@ -235,6 +237,8 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
                 f"alignment ({moved:.2f} of the target's size away); at confidence "
                 f"{truncated(verdict.confidence)}, below verdict.reverse_below "
                 f"{cfg.verdict.reverse_below:.2f}, an answer needs that confirmation")
+    if status == "failed":
+        message += units_hint(nt.size / ns.size, cfg.scale_bounds)
     mirror: dict[str, float] = {}
     if status == "ok" and confirm and verdict.score < cfg.verdict.mirror_below:
         # A mirror image (a cloud with a flipped axis) has no right rotation, but the best one can stand out
@@ -333,6 +337,17 @@ def mirror_config(cfg: EngineConfig, overlap: float) -> EngineConfig:
     if cfg.overlap == "auto" and any(abs(overlap - r) < 1e-9 for r in cfg.overlap_candidates):
         update["overlap"] = overlap
     return cfg.model_copy(update=update)
+
+
+def units_hint(size_ratio: float, scale_bounds: tuple[float, float]) -> str:
+    """What to add to a refusal when the target is more than ``scale_bounds`` allows larger (or smaller)
+    than the source: clouds in different units (inches and metres, 39x) otherwise fail as "too weak
+    evidence" or "low confidence", with nothing that points at the scale."""
+    lo, hi = scale_bounds
+    if lo <= size_ratio <= hi:
+        return ""
+    return (f"; the target is {size_ratio:.3g} times the source's size, outside engine.scale_bounds [{lo}, {hi}]: "
+            "if their units differ (mm and m: 1000), widen scale_bounds")
 
 
 def reverse_displacement(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, T_n: np.ndarray,

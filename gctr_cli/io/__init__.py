@@ -20,8 +20,11 @@ extension             read                         write
 ``.ply``              ASCII, binary LE/BE          binary LE, float64 x y z + attributes
 ``.pcd``              ascii, binary, compressed    binary float64 x y z + attributes (aligned
                                                    clouds: binary float32, or ASCII float64)
-``.xyz .txt .pts``    text columns                 ``%.17g`` text (+ attribute columns)
-``.las .laz``         LAS 1.0-1.4, LAZ (lazrs)     LAS/LAZ 1.4 with attributes
+``.xyz .txt .pts``    text columns (+ attributes)  ``%.17g`` text (+ attribute columns; .pts:
+                                                   intensity, red green blue)
+``.las .laz``         LAS 1.0-1.4, LAZ (lazrs)     LAS/LAZ 1.4 with attributes; from a LAS
+                                                   source: its version, point format, CRS
+                                                   records and header ids
 ``.e57``              all scans, poses applied     --
 ====================  ===========================  ==========================================
 
@@ -43,7 +46,7 @@ import numpy as np
 
 from gctr_cli.fsutil import atomic_write, write_error
 from gctr_cli.io.cloud import COLLINEAR_RTOL, PointCloud, transform_cloud, validate_cloud
-from gctr_cli.io.errors import MatrixError, PointCloudError
+from gctr_cli.io.errors import MatrixError, PointCloudError, clean
 from gctr_cli.io.matrix import format_matrix, read_matrix, write_matrix
 from gctr_cli.io.paths import check_input_file
 from gctr_cli.io.registry import FORMATS, READ_EXTENSIONS, WRITE_EXTENSIONS, format_of
@@ -128,10 +131,16 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     Coordinates are written at full precision: float64 in PLY and PCD (binary little endian when
     ``binary``, else ASCII), ``%.17g`` in text files (``.pts`` starts with a point-count line), and
     in LAS/LAZ 1.4 with a power-of-ten scale that quantises each axis to at most span / 4e8 (2.5 µm on
-    a 1 km tile). Attributes are kept where the format allows: PLY and PCD keep every numeric attribute,
-    LAS fills its standard dimensions (intensity, classification, colours ...) and stores the others
-    as extra bytes, text files get one column per attribute after ``x y z``. Missing parent folders
-    are created; the write is atomic (temporary file in the same folder, then ``os.replace``).
+    a 1 km tile), or, for a cloud read from LAS/LAZ, with the source's scale (times the scale factor
+    of the transform since) and offset, which keeps every digit the source had. Attributes are kept
+    where the format allows: PLY and PCD keep every numeric attribute, LAS fills its standard dimensions
+    (intensity, classification, colours ...) and stores the others as extra bytes, ``.xyz``/``.txt``
+    files get one column per attribute after ``x y z`` (named in a ``# x y z ...`` line), ``.pts`` files
+    only intensity and 8-bit red green blue, the columns PTS readers know (the others are named in a
+    warning). A LAS/LAZ output of a LAS source keeps the source's version, point format, CRS records and
+    header ids (:func:`gctr_cli.io.las.las_bytes`); any other output of it logs a warning when the
+    source's CRS is lost. Missing parent folders are created; the write is atomic (temporary file in the
+    same folder, then ``os.replace``).
 
     Interoperability note: Open3D 0.20's legacy PCD reader silently returns zeros for ``SIZE 8``
     (double) fields in binary PCD files, but reads them exactly from ASCII ones. With ``open3d_pcd``, a
@@ -153,6 +162,13 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise PointCloudError(f"{path}: points must have shape (N, 3), got {pts.shape}")
         cloud = PointCloud(pts)
+    if fmt.name not in ("LAS", "LAZ") and cloud.source_format == "las" and "las_header" in cloud.meta:
+        from gctr_cli.io.las import crs_description
+
+        crs = crs_description(cloud.meta["las_header"])
+        if crs:  # the registration kept the frame; the output no longer says which it is
+            logger.warning("%s: the coordinate reference system of the LAS source (%s) is not kept: %s files "
+                           "cannot hold it", clean(path), crs, fmt.name)
     if open3d_pcd and binary and fmt.name == "PCD":
         from gctr_cli.io.pcd import float32_is_enough, pcd_bytes
 

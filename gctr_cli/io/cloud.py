@@ -53,7 +53,9 @@ class PointCloud:
     coordinates already applied, at full float64 precision). ``attributes`` maps a name (``intensity``,
     ``red``, ``green``, ``blue``, ``classification``, ``nx`` ...) to a 1-D array of length N in the
     file's own type. ``source_format`` names the reader (``"ply"``, ``"las"`` ...) and ``meta`` holds
-    format hints a writer of the same family may reuse (e.g. the LAS point format and scales).
+    format hints a writer of the same family may reuse (e.g. the LAS header: its scales, CRS records);
+    ``meta["transform"]``, when present, is the 4x4 matrix the cloud was moved by since it was read
+    (:func:`transform_cloud`), for hints that change with the points (a LAS quantum, a sensor pose).
     """
 
     points: np.ndarray
@@ -127,7 +129,7 @@ def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
     Points are moved about their mean, so UTM-size coordinates keep their precision; normal
     attributes (``nx ny nz`` / ``normal_x ...``) are mapped by the inverse transpose of ``A`` (rotated,
     for a similarity) and renormalised, so they stay perpendicular to the moved surface; every other
-    attribute is copied unchanged.
+    attribute is copied unchanged. ``meta["transform"]`` accumulates ``T``.
     """
     M = np.asarray(T, dtype=np.float64)
     A, t = M[:3, :3], M[:3, 3]
@@ -146,7 +148,8 @@ def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
             for j, n in enumerate(names):
                 kind = attrs[n].dtype
                 attrs[n] = nrm[:, j].astype(kind) if kind.kind == "f" else nrm[:, j]
-    return PointCloud(moved, attrs, cloud.source_format, cloud.meta)
+    meta = {**cloud.meta, "transform": M @ np.asarray(cloud.meta.get("transform", np.eye(4)), dtype=np.float64)}
+    return PointCloud(moved, attrs, cloud.source_format, meta)
 
 
 def named_normals(attributes: dict[str, np.ndarray], names: tuple[str, str, str]) -> dict[str, np.ndarray]:

@@ -1,9 +1,11 @@
 """E57 (ASTM E2807, terrestrial scanner projects) via pye57: reader.
 
 Every scan of the file is read with its stored pose (rotation quaternion and translation) applied,
-and the scans are merged into one cloud in the file's common frame; spherical scans are converted
-to cartesian. Points flagged invalid are dropped. Intensity and colours are kept as attributes
-(``intensity``, ``red``/``green``/``blue``) when every scan has them.
+and the scans are merged into one cloud in the file's common frame (said at info level, with the
+scans' names); spherical scans are converted to cartesian. Points flagged invalid (no coordinates
+measured) are dropped, with a warning giving their count. Intensity and colours are kept as
+attributes (``intensity``, ``red``/``green``/``blue``) when every scan has them; one warning names
+what is not kept (an attribute some scans lack, the point fields gctr does not read).
 
 The point counts the file declares are checked against its size (at least one byte per point)
 before any buffer is allocated.
@@ -16,14 +18,45 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud
-from gctr_cli.io.errors import PointCloudError
+from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud
+from gctr_cli.io.errors import PointCloudError, clean, quote
 
 __all__ = ["read_e57"]
 
 logger = logging.getLogger("gctr_cli.io")
 
 _COLOR = {"colorRed": "red", "colorGreen": "green", "colorBlue": "blue"}
+#: point fields the reader uses: coordinates, their invalid-state flags, intensity, colours
+_READ = {"cartesianX", "cartesianY", "cartesianZ", "sphericalRange", "sphericalAzimuth", "sphericalElevation",
+         "cartesianInvalidState", "sphericalInvalidState", "intensity", *_COLOR}
+
+
+def _scan_name(header, i: int) -> str:
+    """``scan 3 'Station 4'`` (the scan's E57 name when it has one), for messages."""
+    try:
+        name = header["name"].value() if "name" in header.scan_fields else ""
+    except Exception:  # noqa: BLE001 - an unreadable name is only not shown
+        name = ""
+    return f"scan {i} {quote(name)}" if name else f"scan {i}"
+
+
+def _list(names: list[str], limit: int = 8) -> str:
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def _not_kept(path: Path, names: list[str], fields: list[set[str]], want_int: bool, want_rgb: bool) -> None:
+    """One warning naming what an attribute read does not keep: intensity or colours that some scans lack
+    (an attribute is kept only when every scan has it) and the point fields gctr does not read."""
+    parts = []
+    for what, needed, kept in (("intensity", {"intensity"}, want_int), ("colours", set(_COLOR), want_rgb)):
+        lacking = [names[i] for i, f in enumerate(fields) if not needed <= f]
+        if not kept and len(lacking) < len(fields):
+            parts.append(f"{what} (missing from {_list(lacking)}; kept only when every scan has it)")
+    other = sorted(set().union(*fields) - _READ)
+    if other:
+        parts.append(f"{_list([quote(f) for f in other])} (point fields gctr does not read)")
+    if parts:
+        logger.warning("%s: not kept: %s", clean(path), "; ".join(parts), extra=ATTRIBUTE_NOTE)
 
 
 def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
@@ -45,6 +78,7 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         if n_scans == 0:
             raise PointCloudError(f"{path}: contains no points (the E57 file has no scans)")
         headers = []
+        names = []
         total = 0
         for i in range(n_scans):
             try:
@@ -54,6 +88,7 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                 q, t = np.asarray(h.rotation, dtype=np.float64), np.asarray(h.translation, dtype=np.float64)
             except Exception as exc:  # noqa: BLE001
                 raise corrupt(exc, f"the header of scan {i} cannot be read") from None
+            names.append(_scan_name(h, i))
             if not (np.isfinite(q).all() and np.isfinite(t).all() and np.linalg.norm(q) > 1e-9):
                 # a zero quaternion would put every point of the scan at its translation
                 raise PointCloudError(f"{path}: scan {i} has an invalid pose (rotation quaternion "
@@ -67,6 +102,8 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             )
         want_int = attributes and all("intensity" in f for f in headers)
         want_rgb = attributes and all(all(c in f for c in _COLOR) for f in headers)
+        if attributes:
+            _not_kept(path, names, headers, want_int, want_rgb)
         parts: list[np.ndarray] = []
         attrs: dict[str, list[np.ndarray]] = {"intensity": []} if want_int else {}
         if want_rgb:
@@ -93,6 +130,11 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         except Exception:  # noqa: BLE001
             pass
     pts = np.concatenate(parts) if parts else np.empty((0, 3))
+    if n_scans > 1:
+        logger.info("%s: merged %d scans, each placed by its pose: %s", clean(path), n_scans, _list(names))
+    if invalid := total - len(pts):  # pye57 drops the points whose invalid state is set
+        logger.warning("%s: dropped %d of %d points the E57 file flags invalid (no coordinates measured)",
+                       clean(path), invalid, total)
     out = {k: np.concatenate(v) for k, v in attrs.items() if v}
     return PointCloud(pts, {k: v for k, v in out.items() if len(v) == len(pts)}, "e57",
                       {"e57_scans": n_scans})

@@ -1,7 +1,10 @@
 """PCD (PCL's format): ``DATA ascii``, ``binary`` and ``binary_compressed`` (reader and writer).
 
-Scalar fields (``COUNT 1``) other than x y z are kept as attributes; a packed ``rgb``/``rgba`` float
-is unpacked into ``red``/``green``/``blue`` (uint8). ``binary_compressed`` data is LZF, decompressed
+Fields other than x y z are kept as attributes, a field of ``COUNT k`` (a histogram, a descriptor) as
+k columns ``name_0 .. name_{k-1}``; a packed ``rgb``/``rgba`` is unpacked into ``red``/``green``/``blue``
+(uint8), and ``rgba``'s alpha into ``alpha``. A non-identity ``VIEWPOINT`` (the sensor's pose) is not
+applied to the points, as in PCL, with a warning; a PCD output of the cloud writes it back, moved with
+the points (:func:`pcd_bytes`). ``binary_compressed`` data is LZF, decompressed
 with python-lzf after the declared sizes have been checked: the uncompressed size must equal the
 header's points x point size and LZF expands at most about 88-fold, so a 200-byte file can never ask
 for gigabytes.
@@ -44,6 +47,7 @@ class _Header:
     points: int
     data: str
     lines: int  # header lines
+    viewpoint: tuple[float, ...] | None = None  # tx ty tz qw qx qy qz, when the header has a valid one
 
     def dtypes(self) -> list[np.dtype]:
         return [np.dtype("<" + t.lower() + str(s)) for t, s in zip(self.types, self.sizes)]
@@ -66,7 +70,7 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         if hdr.counts[hdr.fields.index(c)] != 1:
             raise PointCloudError(f"{path}: PCD field '{c}' has COUNT {hdr.counts[hdr.fields.index(c)]}, expected 1")
     n = hdr.points
-    keep = [i for i, f in enumerate(hdr.fields) if hdr.counts[i] == 1 and f != "_" and (attributes or f in "xyz")]
+    keep = [i for i, f in enumerate(hdr.fields) if f != "_" and (attributes or f in "xyz")]
     dtypes = hdr.dtypes()
 
     if hdr.data == "ascii":
@@ -85,10 +89,17 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             logger.warning("%s: %d more data lines after the %d points the header declares (ignored)", path,
                            extra, n)
         starts = np.cumsum([0] + hdr.counts[:-1])
-        # x y z keep the text's value (float64); attributes get their declared type
-        table = {hdr.fields[i]: rows[:, starts[i]] if hdr.fields[i] in "xyz" else
-                 as_declared(path, hdr.fields[i], f"{hdr.types[i]} {hdr.sizes[i]}", rows[:, starts[i]], dtypes[i])
-                 for i in keep}
+        # x y z keep the text's value (float64); attributes get their declared type, a field of COUNT k
+        # one column per element
+        table = {}
+        for i in keep:
+            name = hdr.fields[i]
+            if name in ("x", "y", "z"):
+                table[name] = rows[:, starts[i]]
+                continue
+            for j, col in enumerate(_element_names(name, hdr.counts[i])):
+                table[col] = as_declared(path, col, f"{hdr.types[i]} {hdr.sizes[i]}", rows[:, starts[i] + j],
+                                         dtypes[i])
     elif hdr.data == "binary":
         point_size = hdr.point_size()
         if numeric_text(fh):
@@ -99,6 +110,12 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                 f"{path}: truncated: the header declares {n} points of {point_size} bytes but only "
                 f"{data_bytes} bytes of binary data follow the header (expected {n * point_size})"
             )
+        if point_size and (extra := (data_bytes - n * point_size) // point_size):
+            if n == 0:
+                raise PointCloudError(f"{path}: the header declares 0 points but {extra} point records follow "
+                                      "(a writer that never filled in POINTS/WIDTH?)")
+            logger.warning("%s: %d more point records after the %d points the header declares (ignored)",
+                           clean(path), extra, n)
         body = fh.read(n * point_size)
         rec_dtype = np.dtype([(f"f{i}", dt, (c,)) if c > 1 else (f"f{i}", dt)
                               for i, (dt, c) in enumerate(zip(dtypes, hdr.counts))])
@@ -113,14 +130,31 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     attrs = {}
     if attributes:
         for name, v in table.items():
-            if name in ("rgb", "rgba") and v.dtype.itemsize == 4:
+            if name in ("rgb", "rgba") and v.dtype.itemsize == 4 and v.ndim == 1:
                 packed = np.ascontiguousarray(v).view("<u4")
                 attrs["red"] = ((packed >> 16) & 0xFF).astype(np.uint8)
                 attrs["green"] = ((packed >> 8) & 0xFF).astype(np.uint8)
                 attrs["blue"] = (packed & 0xFF).astype(np.uint8)
+                if name == "rgba":  # PCL's rgb has no alpha (its high byte is padding); rgba's is the alpha
+                    attrs["alpha"] = ((packed >> 24) & 0xFF).astype(np.uint8)
+            elif v.ndim == 2:
+                names = _element_names(name, v.shape[1])
+                attrs.update({col: np.ascontiguousarray(v[:, j]) for j, col in enumerate(names)})
             else:
                 attrs[name] = np.ascontiguousarray(v)
-    return PointCloud(pts, attrs, "pcd")
+    meta = {}
+    if hdr.viewpoint is not None and hdr.viewpoint != IDENTITY_VIEWPOINT:
+        logger.warning("%s: the PCD VIEWPOINT (the sensor's pose: translation %s, rotation quaternion w x y z %s) is "
+                       "not applied to the points, as in PCL; only a PCD output keeps it, moved with the points",
+                       clean(path), " ".join(f"{v:g}" for v in hdr.viewpoint[:3]),
+                       " ".join(f"{v:g}" for v in hdr.viewpoint[3:]))
+        meta["pcd_viewpoint"] = hdr.viewpoint
+    return PointCloud(pts, attrs, "pcd", meta)
+
+
+def _element_names(name: str, count: int) -> list[str]:
+    """The columns of a field of ``count`` elements: the name itself for one, else ``name_0 name_1 ...``."""
+    return [name] if count == 1 else [f"{name}_{j}" for j in range(count)]
 
 
 def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[int]) -> dict[str, np.ndarray]:
@@ -163,7 +197,8 @@ def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[i
     assert raw is not None  # checked above
     dtypes = hdr.dtypes()
     offs = np.cumsum([0] + [n * dt.itemsize * c for dt, c in zip(dtypes, hdr.counts)])
-    return {hdr.fields[i]: np.frombuffer(raw, dtype=dtypes[i], count=n, offset=int(offs[i])) for i in keep}
+    return {hdr.fields[i]: np.frombuffer(raw, dtype=dtypes[i], count=n * hdr.counts[i], offset=int(offs[i]))
+            .reshape((n, hdr.counts[i]) if hdr.counts[i] > 1 else (n,)) for i in keep}
 
 
 def _parse_header(fh, path: Path) -> _Header:
@@ -263,7 +298,12 @@ def _parse_header(fh, path: Path) -> _Header:
     data = " ".join(vals["DATA"]).lower()
     if data not in ("ascii", "binary", "binary_compressed"):
         raise bad(f"unknown DATA type {quote(data)} (expected ascii, binary or binary_compressed)")
-    return _Header(fields, sizes, types, counts, points, data, lineno)
+    viewpoint = None
+    if "VIEWPOINT" in vals:
+        numbers = [parse_float(w.encode("latin-1")) for w in vals["VIEWPOINT"]]
+        if len(numbers) == 7 and all(v is not None and np.isfinite(v) for v in numbers):
+            viewpoint = tuple(float(v) for v in numbers if v is not None)
+    return _Header(fields, sizes, types, counts, points, data, lineno, viewpoint)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -271,6 +311,30 @@ def _parse_header(fh, path: Path) -> _Header:
 # ----------------------------------------------------------------------------------------------------
 
 _PCD_TYPE = {"f": "F", "i": "I", "u": "U"}
+#: PCL's default VIEWPOINT: the sensor at the origin, not turned (tx ty tz qw qx qy qz)
+IDENTITY_VIEWPOINT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+def _viewpoint(cloud: PointCloud) -> tuple[float, ...]:
+    """The VIEWPOINT to write: a PCD source's own (non-identity) one, moved by the transform applied since
+    it was read, else PCL's default. The viewpoint is the sensor's pose in the cloud's frame, so it moves
+    with the points: its position by the matrix, its orientation by the matrix's rotation (the nearest
+    rotation of the linear part). A default viewpoint stays the default: most writers put it there
+    without knowing where the sensor was."""
+    vp = cloud.meta.get("pcd_viewpoint") if cloud.source_format == "pcd" else None
+    if vp is None:
+        return IDENTITY_VIEWPOINT
+    T = np.asarray(cloud.meta.get("transform", np.eye(4)), dtype=np.float64)
+    if np.array_equal(T, np.eye(4)):
+        return tuple(vp)
+    from scipy.spatial.transform import Rotation
+
+    t = T[:3, :3] @ np.asarray(vp[:3]) + T[:3, 3]
+    w, x, y, z = vp[3:]
+    turned = T[:3, :3] @ Rotation.from_quat([x, y, z, w]).as_matrix()
+    u, _, vt = np.linalg.svd(turned)
+    qx, qy, qz, qw = Rotation.from_matrix(u @ vt).as_quat()
+    return (*map(float, t), float(qw), float(qx), float(qy), float(qz))
 
 
 #: aligned clouds get float32 coordinates (``write_point_cloud(..., open3d_pcd=True)``) when their
@@ -288,10 +352,16 @@ def float32_is_enough(points: np.ndarray) -> bool:
     return extent > 0 and error <= FLOAT32_TOLERANCE * extent
 
 
+def _number(v: float) -> str:
+    """``v`` as the shortest text that reads back as the same double (``1``, ``0.5``, ``1e-05``)."""
+    return str(int(v)) if v.is_integer() and abs(v) < 1e15 else repr(v)
+
+
 def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> bytes:
     """The bytes of a PCD file: float64 x y z plus the 1-D numeric attributes in their own types
-    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float, 16-bit colours as 8-bit); binary, or
-    ASCII with ``%.17g``.
+    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float, or with an 8-bit ``alpha`` into its
+    ``rgba`` uint32; 16-bit colours as 8-bit); binary, or ASCII with ``%.17g``. The VIEWPOINT is a PCD
+    source's own, moved with the points (:func:`_viewpoint`).
     With ``float32`` the coordinates and normals are float32 (Open3D's legacy reader cannot read float64
     binary PCD files; check :func:`float32_is_enough` first). Normals are written as PCL's ``normal_x
     normal_y normal_z``."""
@@ -306,7 +376,12 @@ def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> 
         attrs.update({k: np.asarray(attrs[k], dtype=np.float32) for k in normal_names if k in attrs})
     if all(k in attrs for k in ("red", "green", "blue")):
         r, g, b = (np.asarray(attrs.pop(k)).astype(np.uint32) & 0xFF for k in ("red", "green", "blue"))
-        cols.append(("rgb", ((r << 16) | (g << 8) | b).astype("<u4").view("<f4")))
+        alpha = np.asarray(attrs.get("alpha", []))
+        if alpha.shape == (n,) and alpha.dtype.kind in "ui" and (not n or 0 <= alpha.min() <= alpha.max() <= 255):
+            a = attrs.pop("alpha").astype(np.uint32)  # PCL's rgba: a uint32 with alpha in the high byte
+            cols.append(("rgba", ((a << 24) | (r << 16) | (g << 8) | b).astype("<u4")))
+        else:
+            cols.append(("rgb", ((r << 16) | (g << 8) | b).astype("<u4").view("<f4")))
     for name, v in attrs.items():
         v = np.asarray(v)
         if v.shape != (n,) or v.dtype.kind not in "fiub" or name in ("x", "y", "z"):
@@ -320,7 +395,8 @@ def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> 
         f"SIZE {' '.join(str(v.dtype.itemsize) for _, v in cols)}\n"
         f"TYPE {' '.join(_PCD_TYPE[v.dtype.kind] for _, v in cols)}\n"
         f"COUNT {' '.join('1' for _ in cols)}\n"
-        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {'binary' if binary else 'ascii'}\n"
+        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT {' '.join(_number(v) for v in _viewpoint(cloud))}\nPOINTS {n}\n"
+        f"DATA {'binary' if binary else 'ascii'}\n"
     )
     if binary:
         body = pack_columns([v for _, v in cols])

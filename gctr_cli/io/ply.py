@@ -1,8 +1,9 @@
 """PLY: ASCII, binary little endian and binary big endian (reader and writer).
 
 The ``vertex`` element must have scalar ``x``, ``y`` and ``z`` properties of any numeric type; its
-other scalar properties (colours, intensity, normals ...) are kept as attributes. Other elements
-(faces, ``range_grid`` lists ...) are skipped, wherever they are in the file.
+other scalar properties (colours, intensity, normals ...) are kept as attributes; its list properties
+are not (one warning names them). Other elements (faces, ``range_grid`` lists ...) are skipped,
+wherever they are in the file.
 
 Robustness rules: every element's declared size is checked against the bytes left in the file
 before anything is allocated (ASCII: at least two bytes per value); ASCII elements are read one line
@@ -18,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
-from gctr_cli.io.errors import PointCloudError, quote
+from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, named_normals
+from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.lines import LineReader, as_declared, binary_data, numeric_text, parse_float, read_rows
 
 __all__ = ["ply_bytes", "read_ply"]
@@ -122,6 +123,9 @@ def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     for j, c in enumerate("xyz"):
         pts[:, j] = table[c]
     attrs = {}
+    if attributes and (lists := [quote(p.name) for p in vertex.props if p.count_dtype is not None]):
+        logger.warning("%s: vertex list %s %s not kept (gctr keeps one value per vertex and property)", clean(path),
+                       "properties" if len(lists) > 1 else "property", ", ".join(lists), extra=ATTRIBUTE_NOTE)
     if attributes:
         for p in vertex.props:
             if p.count_dtype is None and p.name not in ("x", "y", "z") and p.name in table:

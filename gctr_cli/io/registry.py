@@ -44,9 +44,9 @@ def _write_text(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: 
 
 
 def _write_pts(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
-    from gctr_cli.io.text import text_bytes
+    from gctr_cli.io.text import pts_bytes
 
-    return text_bytes(cloud, with_count_line=True)
+    return pts_bytes(cloud, path)
 
 
 def _write_las(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001

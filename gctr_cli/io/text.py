@@ -1,15 +1,28 @@
 """Text clouds: ``.xyz`` / ``.pts`` / ``.txt`` (reader and writer).
 
-The first three columns are x y z; extra columns are ignored; leading header lines that are not
-numbers, a leading point-count line (one number on its own) and ``#`` / ``//`` comment lines are
-skipped. Columns are separated by blanks, tabs, commas or semicolons. Exports with decimal commas are
-read when the separator makes them unambiguous (tabs or semicolons: ``1,5;2,25;3`` is x=1.5 y=2.25
-z=3); decimal commas separated by blanks (``1,5 2,25 3,0``) are refused with a message saying so,
-because they cannot be told apart from comma-separated columns. The dialect is read off the first
-data line and held to: a later line that does not fit it, or has an empty x/y/z cell, is an error
-naming the line, never a silent shift of the columns. A leading point-count line that promises more
-points than follow is an error (a truncated file); a count line further down starts the next section
-of a multi-section PTS file (one section per scan).
+The first three columns are x y z; leading header lines that are not numbers, a leading point-count
+line (one number on its own) and ``#`` / ``//`` comment lines are skipped. Columns are separated by
+blanks, tabs, commas or semicolons. Exports with decimal commas are read when the separator makes
+them unambiguous (tabs or semicolons: ``1,5;2,25;3`` is x=1.5 y=2.25 z=3); the x y z cells alone
+decide, so a later ``14.03.2024 10:15:00,000`` or ``Punkt 1, Gruppe A`` changes nothing. Decimal
+commas separated by blanks (``1,5 2,25 3,0``) are refused with a message saying so, because they
+cannot be told apart from comma-separated columns. The dialect is read off the first data line and
+held to: a later line that does not fit it, or has an empty x/y/z cell, is an error naming the line,
+never a silent shift of the columns. A leading point-count line that promises more points than
+follow is an error (a truncated file); a count line further down starts the next section of a
+multi-section PTS file (one section per scan).
+
+The columns after x y z are read as float64 attributes when attributes are asked for (``gctr
+apply``, ``--aligned``; a registration reads x y z only) and every data line has as many columns as
+the first one, all numbers. Their names come from the last leading header or comment line (``# x y z
+intensity red`` as gctr writes it, ``X Y Z R G B``, ``//X,Y,Z,Intensity``), else a ``.pts`` file's
+Leica layout, else ``column_4`` ... (:func:`_attribute_names`). Otherwise x y z are read and one
+warning names the first line that does not fit: columns are never dropped without a word.
+
+Written (:func:`text_bytes`, :func:`pts_bytes`) as ``%.17g`` rows: ``.xyz`` / ``.txt`` with every
+numeric attribute after x y z, named in a ``# x y z name ...`` line; ``.pts`` as the point count
+and rows ``x y z [intensity] [red green blue]`` only, the layouts PTS readers know by their number of
+columns (a comment line made Open3D read every point as (0, 0, 0)).
 
 Read in blocks of whole lines (``np.loadtxt`` for plain numeric blocks), so memory follows the number
 of points, not the size of the text: about 180 MB and 7 s for 2 million points. A line longer than
@@ -28,13 +41,13 @@ from typing import Any
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud
-from gctr_cli.io.errors import PointCloudError, quote
+from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, integer_misfit
+from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.ply import format_columns
 
-logger = logging.getLogger(__name__)
+logger = logging.getLogger("gctr_cli.io")
 
-__all__ = ["read_text", "text_bytes"]
+__all__ = ["pts_bytes", "read_text", "text_bytes"]
 
 #: the first block of a text cloud is small (header detection runs line by line); later ones are large
 _TEXT_FIRST_BLOCK = 1 << 16
@@ -63,6 +76,14 @@ _EMPTY_CELL_BYTES = {table: re.compile(pattern.encode(), re.M) for table, patter
 #: and deletion), so that two separators in a row anywhere show as ",,"; only then the exact test
 _SEPARATORS_AS_COMMAS = {_PLAIN: (bytes.maketrans(b";", b","), b" \t"),
                          _DECIMAL_COMMA: (bytes.maketrans(b",;", b".,"), b" \t")}
+#: an empty cell anywhere in a line (two separators in a row), which would shift the later columns
+_EMPTY_LATER_CELL = {_PLAIN: re.compile(r"[,;][ \t]*[,;]"), _DECIMAL_COMMA: re.compile(r";[ \t]*;")}
+#: the short column names of exports, as gctr's attribute names
+_NAME_ALIASES = {"r": "red", "g": "green", "b": "blue", "i": "intensity"}
+#: the columns after x y z of a Leica PTS file without names, by its number of columns
+_PTS_COLUMNS = {4: ["intensity"], 6: ["red", "green", "blue"], 7: ["intensity", "red", "green", "blue"]}
+#: an attribute name every writer takes: a PLY/PCD field name and a LAS extra-bytes name (32 bytes)
+_FIELD_NAME = re.compile(r"[a-z_][a-z0-9_]{0,31}")
 
 
 def _is_number(tok: str) -> bool:
@@ -109,48 +130,68 @@ def _blocks(fh, path: Path) -> Iterator[bytes]:
         yield data[:cut] if carry else data
 
 
-def _fast(block: bytes, table: bytes, blank_separated: bool) -> np.ndarray | None:
+def _fast(block: bytes, table: bytes, blank_separated: bool, ncols: int | None = None) -> np.ndarray | None:
     """x y z of a block of plain numeric lines via numpy's C parser; None if the block needs the
     line-by-line path (comments, unusual separators, an empty cell, a comma in a blank-separated
-    file, a bad line: that path gives the exact error)."""
+    file, a bad line: that path gives the exact error). With ``ncols`` (attributes are read): all
+    columns, and None unless every line has ``ncols`` numbers and no empty cell (that path then says
+    why the columns after x y z are not kept)."""
     if _TEXT_SLOW_BYTES.search(block) or (blank_separated and b"," in block):
         return None
     if table in _SEPARATORS_AS_COMMAS:
         plain_csv = table == _PLAIN and not any(c in block for c in (b" ", b"\t", b";"))
         squeezed = block if plain_csv else block.translate(*_SEPARATORS_AS_COMMAS[table])  # a copy only if needed
         if (b",," in squeezed or b"\n," in squeezed or squeezed.startswith(b",")) \
-                and _EMPTY_CELL_BYTES[table].search(block):  # an empty x, y or z (not a later column)
+                and (ncols or _EMPTY_CELL_BYTES[table].search(block)):  # an empty x, y or z, or any with ncols
             return None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "input contained no data" for blank blocks
         try:
             arr = np.loadtxt(
                 _stdio.BytesIO(block.translate(table)), dtype=np.float64, comments=None,
-                usecols=(0, 1, 2), ndmin=2, encoding="latin-1",
+                usecols=None if ncols else (0, 1, 2), ndmin=2, encoding="latin-1",
             )
-        except ValueError:
+        except ValueError:  # a bad value, or (all columns) a line with another number of columns
             return None
-    return arr.reshape(-1, 3)
+    if not ncols:
+        return arr.reshape(-1, 3)
+    if arr.size == 0:
+        return np.empty((0, ncols))
+    return arr if arr.shape[1] == ncols else None
 
 
 def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:  # noqa: ARG001
-    """Text clouds, read in blocks of whole lines so that memory stays proportional to the points."""
+    """Text clouds, read in blocks of whole lines so that memory stays proportional to the points.
+
+    With ``attributes``, the columns after x y z become float64 attributes (:func:`_attribute_names`)
+    when every data line has as many columns as the first one, all numbers; else x y z are read and one
+    warning names the first line that does not fit. Without, only x y z are parsed (registration)."""
     if b"\x00" in fh.read(4096):
         raise PointCloudError(f"{path}: not a text point cloud (binary data found)")
     fh.seek(0)
     parts: list[np.ndarray] = []
+    extra_parts: list[np.ndarray] = []
+    # extras: the columns after x y z are still being read; ncols: the first data line's columns;
+    # names_line: the last leading header or comment line; extras_problem: why they are not kept
     state: dict[str, Any] = {"header": True, "seen_count_line": False, "table": _PLAIN, "count": None,
-                             "blank": False}
+                             "blank": False, "extras": attributes, "ncols": 3, "names_line": None,
+                             "extras_problem": None}
     lines_before = 0
     for k, block in enumerate(_blocks(fh, path)):
         if k == 0 and block.startswith(b"\xef\xbb\xbf"):  # UTF-8 byte order mark
             block = block[3:]
-        arr = None if state["header"] else _fast(block, state["table"], state["blank"])
+        ncols = state["ncols"] if state["extras"] else None
+        arr = None if state["header"] else _fast(block, state["table"], state["blank"], ncols)
         if arr is not None:
             n_lines = block.count(b"\n") + (not block.endswith(b"\n"))
+            arr, extras = (arr[:, :3], arr[:, 3:]) if ncols else (arr, None)
         else:
-            arr, n_lines = _block_lines(path, block, lines_before, state)
+            arr, extras, n_lines = _block_lines(path, block, lines_before, state)
         parts.append(arr)
+        if not state["extras"]:
+            extra_parts.clear()
+        elif extras is not None and len(extras):
+            extra_parts.append(extras)
         lines_before += n_lines
     pts = np.concatenate(parts) if parts else np.empty((0, 3))
     if len(pts) == 0:
@@ -162,21 +203,44 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             raise PointCloudError(f"{path}: {what} {declared} points but the file has {len(pts)} (truncated?)")
         logger.warning("%s: %s %d points but the file has %d (all %d read)", path, what, declared, len(pts),
                        len(pts))
-    return PointCloud(pts, {}, "xyz")
+    attrs: dict[str, np.ndarray] = {}
+    if state["extras_problem"]:
+        logger.warning("%s: columns after x y z are not kept: %s", clean(path), state["extras_problem"],
+                       extra=ATTRIBUTE_NOTE)
+    elif state["extras"] and state["ncols"] > 3:
+        values = np.concatenate(extra_parts)
+        names = _attribute_names(state["names_line"], state["ncols"], state["table"], path.suffix.lower() == ".pts")
+        attrs = _eight_bit_colours({name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)})
+    return PointCloud(pts, attrs, "xyz")
+
+
+def _eight_bit_colours(attrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``red green blue`` columns of whole numbers 0..255 as uint8: colours, as the binary formats hold
+    them, so that a LAS output widens them to its 16 bits (as floats they were written as 0..255 of
+    65535: nearly black)."""
+    if not all(k in attrs for k in ("red", "green", "blue")):
+        return attrs
+    rgb = [attrs[k] for k in ("red", "green", "blue")]
+    stacked = np.stack(rgb)
+    if not (np.all(stacked == np.round(stacked)) and stacked.min() >= 0 and stacked.max() <= 255):
+        return attrs
+    return {**attrs, **{k: v.astype(np.uint8) for k, v in zip(("red", "green", "blue"), rgb)}}
 
 
 def _dialect(line: str, path: Path, lineno: int) -> bytes:
-    """The byte translation for the file, decided on its first data line.
+    """The byte translation for the file, decided on the x y z cells of its first data line.
 
-    Tabs or semicolons between columns: commas are decimal commas unless this line uses them between
-    columns too (a later ``1,5`` after a first line of whole numbers is then 1.5, and a later comma
-    between columns is an error, never a silent split). Commas between columns: commas and
-    semicolons become blanks; the same for blanks between columns, where a later line may mix in
-    commas (``1.5,2.5,3.5``) but not decimal commas (``1,5 2,5 3,5`` is an error, not six columns:
+    Tabs or semicolons between columns: commas are decimal commas unless the first three cells use
+    them between columns too (a later ``1,5`` after a first line of whole numbers is then 1.5, and a
+    later comma between columns is an error, never a silent split). Only x y z decide: a later cell
+    such as ``14.03.2024 10:15:00,000`` or ``Punkt 1, Gruppe A`` made every comma a column separator
+    and x y z wrong numbers. Commas between columns: commas and semicolons become blanks; the same
+    for blanks between columns, where a later line may mix in commas (``1.5,2.5,3.5``) but not
+    decimal commas (``1,5 2,5 3,5`` is an error, not six columns:
     :func:`_decimal_commas_between_blanks`)."""
     if ";" in line or "\t" in line:
-        fields = [f.strip() for f in re.split(r"[;\t]", line) if f.strip()]
-        if any("," in f and not _DEC_COMMA_TOKEN.match(f) for f in fields):
+        xyz = [f.strip() for f in re.split(r"[;\t]", line) if f.strip()][:3]
+        if any("," in f and not _DEC_COMMA_TOKEN.match(f) for f in xyz):
             return _PLAIN
         return _DECIMAL_COMMA
     toks = line.split()
@@ -202,12 +266,59 @@ def _decimal_commas_between_blanks(line: str) -> bool:
     return any(_DEC_COMMA_TOKEN.match(t) for t in line.split(None, 3)[:3])
 
 
-def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tuple[np.ndarray, int]:
-    """x y z of a block, line by line; returns (points, number of lines of the block).
+def _header_names(line: str, table: bytes) -> list[str]:
+    """The names of a header or comment line (``X Y Z R G B``, ``//X,Y,Z,R,G,B,Scalar field``,
+    ``# x y z intensity``), split at the separators of the data (``;`` or tabs for decimal commas; else
+    commas, semicolons or tabs when the line has any, blanks otherwise: ``Scalar field`` is one name)."""
+    text = line.lstrip("#/").strip()
+    seps = r"[;\t]" if table == _DECIMAL_COMMA else r"[,;\t]"
+    parts = re.split(seps, text) if re.search(seps, text) else text.split()
+    return [p.strip() for p in parts if p.strip()]
+
+
+def _attribute_names(header: str | None, ncols: int, table: bytes, pts: bool) -> list[str]:
+    """The attribute names of columns 4..``ncols``.
+
+    From the last leading header or comment line when it has exactly ``ncols`` names: lower case,
+    blanks as ``_``, ``r g b`` (all three) as ``red green blue`` and ``i`` as ``intensity``; a name
+    that is not a field name every writer takes (ASCII letters, digits and ``_``, not starting with a
+    digit, at most 32 characters, not x y z) is ``column_N``, and so is every column when names
+    repeat. Without such a line: a ``.pts`` file's columns by Leica's convention (4: intensity; 6: red
+    green blue; 7: intensity red green blue), else ``column_4``, ``column_5`` ..."""
+    numbered = [f"column_{j}" for j in range(4, ncols + 1)]
+    names = _header_names(header, table) if header else []
+    if len(names) != ncols:
+        return list(_PTS_COLUMNS[ncols]) if pts and ncols in _PTS_COLUMNS else numbered
+    lower = ["_".join(name.lower().split()) for name in names[3:]]
+    aliases = _NAME_ALIASES if {"r", "g", "b"} <= set(lower) else {"i": "intensity"}  # "b" alone is no colour
+    out = []
+    for name, fallback in zip(lower, numbered, strict=True):
+        name = aliases.get(name, name)
+        out.append(name if _FIELD_NAME.fullmatch(name) and name not in ("x", "y", "z") else fallback)
+    return out if len(set(out)) == len(out) else numbered
+
+
+def _section_count(toks: list[str], state: dict) -> bool:
+    """Whether a line of ``toks`` is the count line of the next section of a multi-section PTS file (one
+    per scan, Leica) after a leading count line; its count is added to the declared points."""
+    if len(toks) == 1 and state.get("count") and toks[0].isdigit():
+        declared, lineno, sections = state["count"]
+        state["count"] = (declared + int(toks[0]), lineno, sections + 1)
+        return True
+    return False
+
+
+def _block_lines(path: Path, block: bytes, lines_before: int,
+                 state: dict) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """x y z of a block, line by line; returns (points, the columns after x y z or None, number of
+    lines of the block).
 
     Leading header lines of the file (``state["header"]``) are skipped: non-numeric lines, and one
     leading point-count line (a single number). ``#`` / ``//`` comment lines and blank lines are
-    skipped anywhere; every other line needs at least three columns, the first three numeric.
+    skipped anywhere; every other line needs at least three columns, the first three numeric. While
+    ``state["extras"]``, the columns after x y z are read too; the first line with another number of
+    columns than the first data line, an empty cell or a non-numeric value there ends that, and
+    ``state["extras_problem"]`` says which line (columns None).
     """
     raw_lines = block.decode("latin-1").splitlines()
 
@@ -219,11 +330,16 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
         while start < len(raw_lines):
             s = raw_lines[start].strip()
             if is_comment(s):
+                state["names_line"] = s or state["names_line"]
                 start += 1
                 continue
             table = _dialect(s, path, lines_before + start + 1)
             toks = s.encode("latin-1").translate(table).decode("latin-1").split()
+            if not toks:  # only separators (an empty spreadsheet row): blank, as further down
+                start += 1
+                continue
             if _header_line(toks):
+                state["names_line"] = s
                 start += 1
                 continue
             if len(toks) == 1 and not state["seen_count_line"]:
@@ -233,9 +349,13 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                     state["count"] = (int(value), lines_before + start + 1, 1)
                 start += 1
                 continue
+            if _section_count(toks, state):  # an empty first section: the first data line is further down
+                start += 1
+                continue
             state["header"] = False
             state["table"] = table
             state["blank"] = not any(c in s for c in ",;\t")
+            state["ncols"] = len(toks)
             break
     lines = block.translate(state["table"]).decode("latin-1").splitlines()
 
@@ -252,6 +372,11 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
     empty_cell = _EMPTY_CELL_TEXT.get(state["table"])
     flat: list[str] = []
     add = flat.extend
+    ncols = state["ncols"]
+    collect = state["extras"] and not state["header"]  # the columns after x y z, while they fit
+    empty_later = None if state["blank"] else _EMPTY_LATER_CELL[state["table"]]
+    extra_rows: list[list[str]] = []
+    extra_lines: list[int] = []
     for i in range(start, len(lines)):
         s = lines[i].strip()
         if is_comment(s):
@@ -268,11 +393,8 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
             raise PointCloudError(
                 f"{path}: line {lines_before + i + 1}: empty x, y or z value ({quote(raw_lines[i], 60)})"
             )
-        toks = s.split(None, 3)
-        if len(toks) == 1 and state.get("count") and toks[0].isdigit():
-            # the count line of the next section of a multi-section PTS file (one per scan, Leica)
-            declared, lineno, sections = state["count"]
-            state["count"] = (declared + int(toks[0]), lineno, sections + 1)
+        toks = s.split() if collect else s.split(None, 3)
+        if _section_count(toks, state):
             continue
         if len(toks) < 3:
             first_non_numeric(i)  # the first bad line of the file is the one reported
@@ -280,6 +402,16 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
                 f"{path}: line {lines_before + i + 1} has {len(toks)} column(s), expected at least 3 (x y z)"
             )
         add(toks[:3])
+        if collect:
+            lineno = lines_before + i + 1
+            if len(toks) != ncols:
+                state["extras_problem"] = f"line {lineno} has {len(toks)} columns, the first data line {ncols}"
+            elif empty_later and empty_later.search(raw_lines[i]):
+                state["extras_problem"] = f"line {lineno} has an empty cell after x y z ({quote(raw_lines[i], 60)})"
+            else:
+                extra_rows.append(toks[3:])
+                extra_lines.append(lineno)
+            collect = not state["extras_problem"]
     if any("_" in t for t in flat):  # float() accepts 1_000; no point cloud writer does
         first_non_numeric(len(lines))
     try:
@@ -287,17 +419,67 @@ def _block_lines(path: Path, block: bytes, lines_before: int, state: dict) -> tu
     except ValueError:
         first_non_numeric(len(lines))
         raise
-    return values.reshape(-1, 3), len(raw_lines)
+    extras = _extra_values(extra_rows, extra_lines, ncols, state) if state["extras"] and not state["header"] else None
+    return values.reshape(-1, 3), extras, len(raw_lines)
 
 
-def text_bytes(cloud: PointCloud, with_count_line: bool = False) -> bytes:
-    """Text rows ``x y z [attributes...]`` (``%.17g``, exact round trip). With attributes, a
-    ``# x y z name ...`` comment line names the columns; ``.pts`` starts with a point-count line."""
+def _extra_values(rows: list[list[str]], linenos: list[int], ncols: int, state: dict) -> np.ndarray | None:
+    """The columns after x y z of ``rows`` (read from lines ``linenos``, all before any line
+    ``state["extras_problem"]`` names) as an ``(n, ncols - 3)`` float64 array. A non-numeric value
+    comes first in the file, so its line replaces that problem; with a problem, ``state["extras"]``
+    goes off and the result is None."""
+    flat = [t for row in rows for t in row]
+    try:
+        if any("_" in t for t in flat):  # float() accepts 1_000; no point cloud writer does
+            raise ValueError
+        values = np.fromiter(map(float, flat), dtype=np.float64, count=len(flat))
+    except ValueError:
+        lineno, j, tok = next((n, j, t) for row, n in zip(rows, linenos, strict=True)
+                              for j, t in enumerate(row) if not _is_number(t))
+        state["extras_problem"] = f"line {lineno} has a non-numeric value {quote(tok)} in column {j + 4}"
+    if state["extras_problem"]:
+        state["extras"] = False
+        return None
+    return values.reshape(len(rows), max(ncols - 3, 0))
+
+
+def text_bytes(cloud: PointCloud) -> bytes:
+    """Text rows ``x y z [attributes...]`` (``%.17g``, exact round trip) of an ``.xyz`` / ``.txt`` file;
+    with attributes, a ``# x y z name ...`` comment line names the columns."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     n = len(pts)
     extra = [(k, np.asarray(v)) for k, v in cloud.attributes.items()
              if np.asarray(v).shape == (n,) and np.asarray(v).dtype.kind in "fiu"]
-    head = f"{n}\n" if with_count_line else ""
+    head = ""
     if extra:
         head += "# x y z " + " ".join("_".join(str(k).split()) for k, _ in extra) + "\n"
     return head.encode("ascii") + format_columns([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra])
+
+
+def pts_bytes(cloud: PointCloud, path: Path | None = None) -> bytes:
+    """A ``.pts`` file: the point count, then rows ``x y z [intensity] [red green blue]`` and nothing else.
+
+    PTS has no comments and no names: readers know the columns by their number (Open3D takes 3, 4, 6
+    or 7 and read a ``# x y z ...`` line as points (0, 0, 0), or no points at all). Colours are written
+    when all three are whole numbers 0..255 (16-bit colours as their high byte), which Open3D reads
+    with ``%d``; every other attribute is left out with one warning naming them (``path``)."""
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    n = len(pts)
+    attrs = eight_bit_colours({k: np.asarray(v) for k, v in cloud.attributes.items()})
+    cols = [pts[:, 0], pts[:, 1], pts[:, 2]]
+    written = []
+    intensity = attrs.get("intensity")
+    if intensity is not None and intensity.shape == (n,) and intensity.dtype.kind in "fiu":
+        cols.append(intensity)
+        written.append("intensity")
+    rgb = [attrs.get(k) for k in ("red", "green", "blue")]
+    if all(v is not None and v.shape == (n,) and v.dtype.kind in "fiu" and integer_misfit(v, 0, 255) is None
+           for v in rgb):
+        cols += [np.asarray(v).astype(np.uint8) for v in rgb]  # whole numbers: written as integers
+        written += ["red", "green", "blue"]
+    left_out = [str(k) for k in cloud.attributes if k not in written]
+    if left_out:
+        logger.warning("%s: attributes not written: %s (a .pts file holds x y z, intensity and red green blue "
+                       "0..255 only); write .ply, .pcd or .las to keep them", clean(path or "PTS output"),
+                       clean(", ".join(left_out)))
+    return f"{n}\n".encode("ascii") + format_columns(cols)
