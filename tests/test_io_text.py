@@ -221,16 +221,23 @@ def test_more_reasons_columns_are_dropped_are_said(tmp_path, caplog, text, probl
     assert [r.getMessage() for r in caplog.records] == [f"{path}: columns after x y z are not kept: {problem}"]
 
 
-def test_apply_keeps_the_columns_of_a_text_cloud(tmp_path):
-    """`gctr apply` to a PLY: the colours and intensity of a Leica PTS file arrive, and Open3D shows them."""
-    import open3d as o3d
-
+def _apply_a_leica_pts(tmp_path: Path, out_name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``gctr apply`` (identity) of a 200-point ``x y z intensity red green blue`` PTS file to ``out_name``;
+    the points and the four columns."""
     pts, extra = _points(200), np.hstack([_columns(200, 1), _columns(200, 3)])
     (tmp_path / "scan.pts").write_text("200\n" + _rows(pts, extra))
     write_matrix(tmp_path / "T.txt", np.eye(4))
     res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "T.txt"), str(tmp_path / "scan.pts"),
-                                        "-o", str(tmp_path / "out.ply")])
+                                        "-o", str(tmp_path / out_name)])
     assert res.exit_code == 0, res.output
+    return pts, extra
+
+
+def test_apply_keeps_the_columns_of_a_text_cloud(tmp_path):
+    """`gctr apply` to a PLY: the colours and intensity of a Leica PTS file arrive, and Open3D shows them."""
+    import open3d as o3d
+
+    pts, extra = _apply_a_leica_pts(tmp_path, "out.ply")
     back = read_point_cloud(tmp_path / "out.ply")
     np.testing.assert_allclose(back.points, pts, rtol=0, atol=1e-12)  # moved about their mean
     for j, k in enumerate(("intensity", "red", "green", "blue")):
@@ -412,12 +419,7 @@ def test_text_colours_reach_a_las_output_at_their_brightness(tmp_path):
     they were written as 121 of 65535: nearly black); colours that are not whole 0..255 stay floats."""
     import laspy
 
-    pts, extra = _points(200), np.hstack([_columns(200, 1), _columns(200, 3)])
-    (tmp_path / "scan.pts").write_text("200\n" + _rows(pts, extra))
-    write_matrix(tmp_path / "T.txt", np.eye(4))
-    res = CliRunner().invoke(cli.main, ["apply", str(tmp_path / "T.txt"), str(tmp_path / "scan.pts"),
-                                        "-o", str(tmp_path / "out.las")])
-    assert res.exit_code == 0, res.output
+    pts, extra = _apply_a_leica_pts(tmp_path, "out.las")
     las = laspy.read(tmp_path / "out.las")
     np.testing.assert_array_equal(np.asarray(las.red), extra[:, 1].astype(np.uint16) * 257)
     np.testing.assert_array_equal(np.asarray(las.blue), extra[:, 3].astype(np.uint16) * 257)
