@@ -472,14 +472,17 @@ def test_a_true_scale_at_or_just_inside_a_bound_is_accepted(true_scale, bounds, 
 
 
 def test_a_refusal_of_clouds_in_other_units_says_to_widen_the_scale_bounds():
-    """The bunny against itself at 0.08 of its size (beyond scale_bounds [0.1, 10], as clouds in other units are):
-    refused, and the message says that the sizes differ beyond the bounds and what to widen; a refusal of
-    clouds of similar size says nothing of units."""
+    """The bunny against itself in inches (the target 0.0254 times the source's size, far beyond scale_bounds
+    [0.1, 10]): refused, and the message says that the sizes differ far beyond the bounds and what to widen.
+    Just beyond a bound (a part of a whole, tight bounds for a rigid pair) it says nothing of units."""
     from gctr_cli.engine.gctr import units_hint
 
     src = _model("bunny")[::4]
-    res = register(src, src * 0.08, EngineConfig(), seed=0)
+    res = register(src, src * 0.0254, EngineConfig(), seed=0)
     assert res.status == "failed"
-    assert "times the source's size, outside engine.scale_bounds [0.1, 10.0]" in res.message, res.message
+    assert "0.0254 times the source's size, far outside engine.scale_bounds [0.1, 10.0]" in res.message, res.message
     assert "widen scale_bounds" in res.message
-    assert units_hint(2.0, (0.1, 10.0)) == "" and units_hint(0.05, (0.1, 10.0)).startswith("; the target is 0.05")
+    assert units_hint(2.0, (0.1, 10.0)) == "" and units_hint(0.05, (0.1, 10.0)) == ""
+    assert units_hint(1.25, (0.99, 1.01)) == ""
+    assert units_hint(0.02, (0.1, 10.0)).startswith("; the target is 0.02 times")
+    assert units_hint(39.4, (0.1, 10.0)).startswith("; the target is 39.4 times")

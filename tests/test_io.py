@@ -500,6 +500,13 @@ def test_pcd_count_3_fields_rgba_alpha_and_viewpoint_are_kept(tmp_path, data, ca
     vp = np.array(line.split()[1:], dtype=float)
     np.testing.assert_allclose(vp[:3], [-39.0, 19.0, 3.0], atol=1e-9)  # 2 * Rz(90) (10, 20, 1.5) + (1, -1, 0)
     np.testing.assert_allclose(np.abs(vp[3:]), [0, 0, 0, 1], atol=1e-9)  # turned 90° twice about z: 180°
+    # a matrix with a flipped axis (apply accepts it, warning): the viewpoint's nearest proper rotation,
+    # not a crash of the writer
+    write_aligned(tmp_path / "scan.pcd", np.diag([-1.0, 1.0, 1.0, 1.0]), tmp_path / "flipped.pcd")
+    line = next(x for x in (tmp_path / "flipped.pcd").read_text("latin-1").splitlines() if x.startswith("VIEWPOINT"))
+    vp = np.array(line.split()[1:], dtype=float)
+    np.testing.assert_allclose(vp[:3], [-10.0, 20.0, 1.5], atol=1e-9)
+    assert np.linalg.norm(vp[3:]) == pytest.approx(1.0)
 
     write_aligned(tmp_path / "scan.pcd", np.eye(4), tmp_path / "out.ply")
     ply = read_point_cloud(tmp_path / "out.ply").attributes

@@ -318,8 +318,8 @@ def test_laz_without_room_for_its_temporary_copy_says_so_instead_of_corrupt(tmp_
 
 def test_las_extra_dimensions_of_several_elements_and_scaled_ones_are_kept(tmp_path):
     """A 3-element extra dimension (normals, 3 doubles) was missing from LAS and PLY outputs, and a scaled
-    one (u2 × 0.1) came back as float64: now PLY gets one column per element and LAS the source's own
-    declarations."""
+    one (u2 × 0.1) came back as float64: now LAS gets the source's own declarations; the normals are turned
+    with the cloud."""
     n = 500
     hdr = laspy.LasHeader(point_format=6, version="1.4")
     hdr.add_extra_dims([laspy.ExtraBytesParams("height", "f8"), laspy.ExtraBytesParams("normals", "3f8"),
@@ -338,13 +338,47 @@ def test_las_extra_dimensions_of_several_elements_and_scaled_ones_are_kept(tmp_p
     assert [(d.name, d.type_str(), None if d.scales is None else list(d.scales), d.description)
             for d in out.point_format.extra_dimensions] == [
         ("height", "f8", None, ""), ("normals", "3f8", None, ""), ("amplitude", "u2", [0.1], "dB")]
-    np.testing.assert_array_equal(out.normals, las.normals)
+    # the normals turn with the surface (kept unturned they were wrong for the moved cloud)
+    turned = np.asarray(las.normals) @ T[:3, :3].T
+    turned /= np.linalg.norm(turned, axis=1, keepdims=True)
+    np.testing.assert_allclose(out.normals, turned, atol=1e-12)
     np.testing.assert_array_equal(out.points.array["amplitude"], las.points.array["amplitude"])  # the same integers
     write_aligned(tmp_path / "extra.las", T, tmp_path / "out.ply")
-    ply = read_point_cloud(tmp_path / "out.ply").attributes
-    for j in range(3):
-        np.testing.assert_array_equal(ply[f"normals_{j}"], las.normals[:, j])
+    ply = read_point_cloud(tmp_path / "out.ply").attributes  # as nx ny nz, the names PLY readers know
+    np.testing.assert_allclose(np.column_stack([ply["nx"], ply["ny"], ply["nz"]]), turned, atol=1e-12)
     np.testing.assert_allclose(ply["amplitude"], las.amplitude)
+
+
+def test_a_las_1_0_source_is_written_as_1_2(tmp_path):
+    """laspy writes LAS 1.1-1.4 only: keeping a 1.0 source's version crashed the writer with laspy's
+    FileVersionNotSupported. 1.2 has the same header and point formats 0 and 1."""
+    hdr = laspy.LasHeader(point_format=1, version="1.2")
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = np.random.default_rng(3).uniform(0, 10, (3, 100))
+    las.write(tmp_path / "v12.las")
+    raw = bytearray((tmp_path / "v12.las").read_bytes())
+    raw[25] = 0  # the minor version byte: LAS 1.0
+    (tmp_path / "v10.las").write_bytes(bytes(raw))
+    write_aligned(tmp_path / "v10.las", np.eye(4), tmp_path / "out.las")
+    out = laspy.read(tmp_path / "out.las")
+    assert str(out.header.version) == "1.2" and out.point_format.id == 1
+    np.testing.assert_allclose(out.x, las.x, atol=0.0005)
+
+
+def test_las_output_quantum_follows_each_axis_stretch(tmp_path):
+    """A matrix that shrinks one axis more than the others (feet to metres in z only) keeps that axis's
+    digits: one scale factor for all axes (the cube root of the determinant) gave z a quantum coarser than
+    its data (0.82 of a source quantum off)."""
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.scales, hdr.offsets = np.array([0.001] * 3), np.zeros(3)
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = np.random.default_rng(4).uniform(0, 100, (3, 500))
+    las.write(tmp_path / "ft.las")
+    T = np.diag([1.0, 1.0, 0.3048, 1.0])
+    write_aligned(tmp_path / "ft.las", T, tmp_path / "m.las")
+    out = laspy.read(tmp_path / "m.las")
+    assert out.header.scales[2] <= 0.001 * 0.3048
+    np.testing.assert_allclose(out.z, np.asarray(las.z) * 0.3048, atol=out.header.scales[2] / 2 + 1e-12)
 
 
 def test_scan_angle_rank_fills_the_scan_angle_of_formats_6_to_10(tmp_path):

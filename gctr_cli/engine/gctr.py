@@ -237,7 +237,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
                 f"alignment ({moved:.2f} of the target's size away); at confidence "
                 f"{truncated(verdict.confidence)}, below verdict.reverse_below "
                 f"{cfg.verdict.reverse_below:.2f}, an answer needs that confirmation")
-    if status == "failed":
+    if refusal in ("weak_evidence", "low_confidence", "not_confirmed"):  # the others name scale_bounds already
         message += units_hint(nt.size / ns.size, cfg.scale_bounds)
     mirror: dict[str, float] = {}
     if status == "ok" and confirm and verdict.score < cfg.verdict.mirror_below:
@@ -339,15 +339,21 @@ def mirror_config(cfg: EngineConfig, overlap: float) -> EngineConfig:
     return cfg.model_copy(update=update)
 
 
+#: a size ratio this far beyond a scale bound suggests other units (:func:`units_hint`)
+UNITS_FACTOR = 3.0
+
+
 def units_hint(size_ratio: float, scale_bounds: tuple[float, float]) -> str:
-    """What to add to a refusal when the target is more than ``scale_bounds`` allows larger (or smaller)
-    than the source: clouds in different units (inches and metres, 39x) otherwise fail as "too weak
-    evidence" or "low confidence", with nothing that points at the scale."""
+    """What to add to a refusal when the target is far more than ``scale_bounds`` allows larger (or smaller)
+    than the source, by more than :data:`UNITS_FACTOR` beyond a bound: clouds in different units (inches
+    and metres, 39x) otherwise fail as "too weak evidence" or "low confidence", with nothing that points
+    at the scale. Just beyond a bound, unequal extents (a part of a whole, tight bounds for a rigid pair)
+    explain the ratio as well."""
     lo, hi = scale_bounds
-    if lo <= size_ratio <= hi:
+    if lo / UNITS_FACTOR <= size_ratio <= hi * UNITS_FACTOR:
         return ""
-    return (f"; the target is {size_ratio:.3g} times the source's size, outside engine.scale_bounds [{lo}, {hi}]: "
-            "if their units differ (mm and m: 1000), widen scale_bounds")
+    return (f"; the target is {size_ratio:.3g} times the source's size, far outside engine.scale_bounds "
+            f"[{lo}, {hi}]: if their units differ (mm and m: 1000), widen scale_bounds")
 
 
 def reverse_displacement(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, T_n: np.ndarray,

@@ -19,7 +19,8 @@ logger = logging.getLogger("gctr_cli.io")
 #: relative singular-value threshold below which a cloud counts as collinear
 COLLINEAR_RTOL = 1e-9
 #: attribute triples that are normal vectors: rotated (not scaled or moved) by a transform
-NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"),
+                ("normals_0", "normals_1", "normals_2"))  # a LAS extra dimension 'normals' of 3 elements
 
 
 #: ``extra`` of a reader's warning that concerns an attribute (read only with ``attributes=True``)
@@ -127,9 +128,9 @@ def transform_cloud(cloud: PointCloud, T: np.ndarray) -> PointCloud:
     """``cloud`` moved by the 4x4 matrix ``T`` (``p' = A·p + t``; ``A = s·R`` for a similarity), in float64.
 
     Points are moved about their mean, so UTM-size coordinates keep their precision; normal
-    attributes (``nx ny nz`` / ``normal_x ...``) are mapped by the inverse transpose of ``A`` (rotated,
-    for a similarity) and renormalised, so they stay perpendicular to the moved surface; every other
-    attribute is copied unchanged. ``meta["transform"]`` accumulates ``T``.
+    attributes (``nx ny nz`` / ``normal_x ...`` / a LAS ``normals`` triple) are mapped by the inverse
+    transpose of ``A`` (rotated, for a similarity) and renormalised, so they stay perpendicular to the
+    moved surface; every other attribute is copied unchanged. ``meta["transform"]`` accumulates ``T``.
     """
     M = np.asarray(T, dtype=np.float64)
     A, t = M[:3, :3], M[:3, 3]

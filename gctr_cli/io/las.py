@@ -369,17 +369,19 @@ def _fits_int32(values: np.ndarray, scale: float, offset: float) -> bool:
 
 def _source_scales_offsets(pts: np.ndarray, source: Any, transform: np.ndarray) -> list[tuple[float, float]]:
     """Scale and offset per axis for a cloud read from the LAS ``source`` header and since moved by
-    ``transform``: its coordinates are no finer than the source's quantum times the transform's scale
-    factor, so that (rounded down to 1, 2 or 5 × 10^k; after a rotation, the finest of the source axes
-    an output axis mixes) keeps them without inventing digits, and the file stays as small as the
-    source. The offset is the source's when every coordinate fits in int32 with it (an identity apply
-    rewrites the same integers), else a multiple of 1000 steps below the axis's minimum; an axis that
-    still does not fit gets :func:`_scale_offset`'s."""
+    ``transform``: its coordinates are no finer than the source's quantum times the transform's stretch
+    of that axis (its scale factor, for a similarity), so that (rounded down to 1, 2 or 5 × 10^k; after a
+    rotation, the finest of the source axes an output axis mixes) keeps them without inventing digits, and
+    the file stays as small as the source. The offset is the source's when every coordinate fits in int32
+    with it (an identity apply rewrites the same integers), else a multiple of 1000 steps below the axis's
+    minimum; an axis that still does not fit gets :func:`_scale_offset`'s."""
     A = np.asarray(transform, dtype=np.float64)[:3, :3]
     s = abs(float(np.linalg.det(A))) ** (1 / 3)
     src_scales = np.abs(np.asarray(source.scales, dtype=np.float64))
     reach = np.abs(A) > 1e-9 * s  # the source axes each output axis is made of
-    finest = s * np.where(reach, src_scales[None, :], np.inf).min(axis=1)
+    # each output axis by its own stretch (its row's length: s for a similarity), so that an axis shrunk
+    # more than the others (feet to metres in z only) keeps its digits
+    finest = np.linalg.norm(A, axis=1) * np.where(reach, src_scales[None, :], np.inf).min(axis=1)
     out = []
     for j in range(3):
         values = pts[:, j]
@@ -582,7 +584,9 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     has_rgb = all(k in attrs for k in _RGB)
     source = cloud.meta.get("las_header") if cloud.source_format == "las" else None
     if source is not None and (not has_rgb or "red" in source.point_format.dimension_names):
-        header = laspy.LasHeader(point_format=int(source.point_format.id), version=str(source.version))
+        # laspy writes LAS 1.1-1.4; 1.2 has the point formats of 1.0 (0 and 1) and the same header
+        version = "1.2" if str(source.version) == "1.0" else str(source.version)
+        header = laspy.LasHeader(point_format=int(source.point_format.id), version=version)
     else:
         header = laspy.LasHeader(point_format=7 if has_rgb else 6, version="1.4")
     if source is not None:

@@ -333,6 +333,8 @@ def _viewpoint(cloud: PointCloud) -> tuple[float, ...]:
     w, x, y, z = vp[3:]
     turned = T[:3, :3] @ Rotation.from_quat([x, y, z, w]).as_matrix()
     u, _, vt = np.linalg.svd(turned)
+    if np.linalg.det(u @ vt) < 0:  # a reflection (an axis flipped): the nearest proper rotation
+        u[:, -1] = -u[:, -1]
     qx, qy, qz, qw = Rotation.from_matrix(u @ vt).as_quat()
     return (*map(float, t), float(qw), float(qx), float(qy), float(qz))
 
