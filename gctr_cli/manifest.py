@@ -325,8 +325,9 @@ def build_manifest(
     if missing_gt:
         logger.warning("%d pair(s) have no ground truth in %s: %s", len(missing_gt), gt_dir, _listing(missing_gt))
     if gt_dir is not None:
+        paired = set(common)
         unused = sorted(f.name for f in Path(gt_dir).iterdir()
-                        if f.suffix == ".txt" and not f.name.startswith(".") and f.stem not in set(common))
+                        if f.suffix == ".txt" and not f.name.startswith(".") and f.stem not in paired)
         if unused:
             logger.warning("%d ground-truth file(s) in %s match no pair: %s", len(unused), gt_dir, _listing(unused))
     return pairs

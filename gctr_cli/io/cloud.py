@@ -11,8 +11,8 @@ import numpy as np
 from gctr_cli.geometry import coordinate_range_problem, robust_core
 from gctr_cli.io.errors import PointCloudError, clean
 
-__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "eight_bit_colours", "named_normals", "transform_cloud",
-           "validate_cloud"]
+__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "eight_bit_colours", "element_columns", "named_normals",
+           "transform_cloud", "validate_cloud"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -44,6 +44,12 @@ def integer_misfit(values: np.ndarray, lo: int, hi: int) -> str | None:
         return None
     x = float(f[np.argmax(bad)])
     return str(int(x)) if np.isfinite(x) and x.is_integer() else f"{x:.10g}"
+
+
+def element_columns(name: str, count: int) -> list[str]:
+    """The attribute columns of a field of ``count`` elements (a PCD ``COUNT 3`` field, a LAS extra
+    dimension ``normals`` '3f8'): the name itself for one, else ``name_0 name_1 ...``."""
+    return [name] if count == 1 else [f"{name}_{j}" for j in range(count)]
 
 
 @dataclass(frozen=True)

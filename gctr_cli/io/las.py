@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud, integer_misfit
+from gctr_cli.io.cloud import PointCloud, element_columns, integer_misfit
 from gctr_cli.io.errors import PointCloudError, clean, quote
 
 __all__ = ["crs_description", "las_bytes", "read_las"]
@@ -325,11 +325,11 @@ def _read_points(path: Path, fh, count: int, compressed: bool, attributes: bool)
     for name, parts in attrs.items():
         v: np.ndarray = np.concatenate(parts) if parts else np.empty(0)
         if v.ndim == 2:  # an extra dimension of several elements (normals '3f8'): one column each
-            out.update({f"{name}_{j}": v[:, j] for j in range(v.shape[1])})
+            out.update({col: v[:, j] for j, col in enumerate(element_columns(name, v.shape[1]))})
         elif len(v) == count:
             out[name] = v
     # the whole header: a LAS/LAZ writer carries its CRS records, encoding bits and ids (:func:`las_bytes`)
-    meta = {"las_point_format": int(hdr.point_format.id), "las_version": str(hdr.version), "las_header": hdr}
+    meta = {"las_header": hdr}
     return PointCloud(pts, out, "las", meta)
 
 
@@ -536,7 +536,7 @@ def _join_elements(source_extra: dict[str, Any], attrs: dict[str, np.ndarray]) -
     (``normals`` as one '3f8' dimension)."""
     joined = {}
     for name, dim in source_extra.items():
-        parts = [f"{name}_{j}" for j in range(dim.num_elements)]
+        parts = element_columns(name, dim.num_elements)
         if dim.num_elements > 1 and name not in attrs and all(p in attrs for p in parts):
             joined[parts[0]] = (name, parts)
     out = {}

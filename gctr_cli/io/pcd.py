@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud, eight_bit_colours, named_normals
+from gctr_cli.io.cloud import PointCloud, eight_bit_colours, element_columns, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
 from gctr_cli.io.lines import LineReader, as_declared, binary_data, numeric_text, parse_float, read_rows
 from gctr_cli.io.ply import format_columns, pack_columns
@@ -97,7 +97,7 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             if name in ("x", "y", "z"):
                 table[name] = rows[:, starts[i]]
                 continue
-            for j, col in enumerate(_element_names(name, hdr.counts[i])):
+            for j, col in enumerate(element_columns(name, hdr.counts[i])):
                 table[col] = as_declared(path, col, f"{hdr.types[i]} {hdr.sizes[i]}", rows[:, starts[i] + j],
                                          dtypes[i])
     elif hdr.data == "binary":
@@ -138,7 +138,7 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                 if name == "rgba":  # PCL's rgb has no alpha (its high byte is padding); rgba's is the alpha
                     attrs["alpha"] = ((packed >> 24) & 0xFF).astype(np.uint8)
             elif v.ndim == 2:
-                names = _element_names(name, v.shape[1])
+                names = element_columns(name, v.shape[1])
                 attrs.update({col: np.ascontiguousarray(v[:, j]) for j, col in enumerate(names)})
             else:
                 attrs[name] = np.ascontiguousarray(v)
@@ -150,11 +150,6 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                        " ".join(f"{v:g}" for v in hdr.viewpoint[3:]))
         meta["pcd_viewpoint"] = hdr.viewpoint
     return PointCloud(pts, attrs, "pcd", meta)
-
-
-def _element_names(name: str, count: int) -> list[str]:
-    """The columns of a field of ``count`` elements: the name itself for one, else ``name_0 name_1 ...``."""
-    return [name] if count == 1 else [f"{name}_{j}" for j in range(count)]
 
 
 def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[int]) -> dict[str, np.ndarray]:

@@ -210,21 +210,18 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     elif state["extras"] and state["ncols"] > 3:
         values = np.concatenate(extra_parts)
         names = _attribute_names(state["names_line"], state["ncols"], state["table"], path.suffix.lower() == ".pts")
-        attrs = _eight_bit_colours({name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)})
+        attrs = _whole_colours_as_bytes({name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)})
     return PointCloud(pts, attrs, "xyz")
 
 
-def _eight_bit_colours(attrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def _whole_colours_as_bytes(attrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """``red green blue`` columns of whole numbers 0..255 as uint8: colours, as the binary formats hold
     them, so that a LAS output widens them to its 16 bits (as floats they were written as 0..255 of
     65535: nearly black)."""
-    if not all(k in attrs for k in ("red", "green", "blue")):
-        return attrs
-    rgb = [attrs[k] for k in ("red", "green", "blue")]
-    stacked = np.stack(rgb)
-    if not (np.all(stacked == np.round(stacked)) and stacked.min() >= 0 and stacked.max() <= 255):
-        return attrs
-    return {**attrs, **{k: v.astype(np.uint8) for k, v in zip(("red", "green", "blue"), rgb)}}
+    rgb = ("red", "green", "blue")
+    if all(k in attrs and integer_misfit(attrs[k], 0, 255) is None for k in rgb):
+        return {**attrs, **{k: attrs[k].astype(np.uint8) for k in rgb}}
+    return attrs
 
 
 def _dialect(line: str, path: Path, lineno: int) -> bytes:
