@@ -382,14 +382,57 @@ def test_sparse_cloud_fails_gracefully():
     assert np.all(np.isfinite(res.transform))
 
 
-@pytest.mark.parametrize("n", [12, 200])
-def test_scattered_points_fail_gracefully(n):
-    """Valid but scattered clouds (no voxel has neighbours → no supervoxel at all): failed, no exception."""
-    pts = np.random.default_rng(3).normal(size=(n, 3))
+def test_a_sparse_cloud_is_registered_with_coarser_supervoxels():
+    """The shipped bunny model thinned to 282 points (one per 1.6 cm cell, like a coarse mesh's vertices):
+    at the configured supervoxels its voxels do not touch and it yields too few salient points. The engine
+    retries once with the coarser ones for sparse clouds, gets the pose right and says so."""
+    import gctr_cli.engine.gctr as engine
+    from gctr_cli.engine.prepare import StageTimer
+
+    model = _model("bunny")
+    _, first = np.unique(np.floor(model / 0.016).astype(np.int64), axis=0, return_index=True)
+    sparse = model[np.sort(first)]
+    truth = to_matrix(1.7, random_rotation(np.random.default_rng(4)), np.array([0.3, -0.2, 0.5]))
+    target = apply(truth, model[::2])
+    with pytest.raises(engine.SparseCloudError, match=r"too few salient points \(source [0-3], target"):
+        engine.run_search(sparse, target, EngineConfig(), 0, StageTimer({}))
+    res = register(sparse, target, EngineConfig(), seed=0)
+    assert res.ok, res.message
+    assert res.message.startswith("registered with coarser supervoxels for sparse clouds "
+                                  "(engine.supervoxel.voxel_ratio 0.05, seed_ratio 0.2, min_voxels 1): "
+                                  "at the configured ones, too few salient points (source ")
+    assert len(sparse) == 282 and f"(source {len(sparse)} points" in res.message
+    errors = transform_errors(res.transform, truth, float(np.linalg.norm(np.ptp(target, axis=0))), sparse.mean(0))
+    assert errors.rot_err_deg < 2.0 and errors.trans_err_rel < 0.01 and errors.scale_err < 0.01, errors
+
+    coarse = engine.coarser_supervoxels(EngineConfig())
+    assert coarse is not None and engine.coarser_supervoxels(coarse) is None
+    scattered = np.random.default_rng(3).normal(size=(12, 3))
+    refused = register(scattered, scattered * 2.0 + 1.0, coarse, seed=0)  # already that coarse: no retry
+    assert refused.refusal == "invalid_input"
+    assert refused.message.endswith("; engine.supervoxel is already as coarse as the retry for sparse clouds "
+                                    "(engine.supervoxel.voxel_ratio 0.05, seed_ratio 0.2, min_voxels 1)")
+
+
+def test_scattered_points_fail_gracefully():
+    """Twelve scattered points (no voxel has neighbours, at any of the two supervoxel resolutions): failed,
+    no exception, and the message says that the coarser retry for sparse clouds found none either."""
+    pts = np.random.default_rng(3).normal(size=(12, 3))
     res = register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0)
-    assert res.status == "failed"
-    assert "too few salient points" in res.message or "too weak evidence" in res.message, res.message
-    assert res.refusal == ("invalid_input" if "too few salient points" in res.message else "weak_evidence")
+    assert res.status == "failed" and res.refusal == "invalid_input" and res.confidence == 0.0
+    assert res.message == ("too few salient points (source 0, target 0); the clouds are too small or too sparse "
+                           "for the supervoxel resolution (source 12 points, target 12); with coarser supervoxels "
+                           "for sparse clouds (engine.supervoxel.voxel_ratio 0.05, seed_ratio 0.2, min_voxels 1) "
+                           "too (source 0, target 0)")
+
+
+def test_scattered_points_are_registered_with_the_coarser_retry():
+    """200 scattered points against a scaled and shifted copy: too sparse for the configured supervoxels,
+    registered (exactly) by the coarser retry."""
+    pts = np.random.default_rng(3).normal(size=(200, 3))
+    res = register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0)
+    assert res.ok and res.message.startswith("registered with coarser supervoxels for sparse clouds"), res.message
+    assert np.allclose(res.transform, to_matrix(2.0, np.eye(3), np.ones(3)), atol=1e-6)
 
 
 def test_run_search_is_registers_search(monkeypatch):
@@ -399,10 +442,12 @@ def test_run_search_is_registers_search(monkeypatch):
     from gctr_cli.engine.prepare import StageTimer
     from gctr_cli.engine.preprocess import DegenerateCloudError
 
-    pts = np.random.default_rng(3).normal(size=(200, 3))
+    pts = np.random.default_rng(3).normal(size=(12, 3))
     with pytest.raises(DegenerateCloudError, match="too few salient points") as err:
         engine.run_search(pts, pts * 2.0 + 1.0, EngineConfig(), 0, StageTimer({}))
-    assert register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0).message == str(err.value)
+    # register retries once with coarser supervoxels (sparse clouds), which fail too, and says so
+    assert register(pts, pts * 2.0 + 1.0, EngineConfig(), seed=0).message.startswith(
+        f"{err.value}; with coarser supervoxels for sparse clouds")
 
     decided = []
     decide = engine.decide

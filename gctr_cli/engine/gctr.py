@@ -8,7 +8,9 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
 
 1. validate both clouds, normalise each (robust centre at the origin, robust diameter 1 — the
    relative scale is unknown, so every length in the config is relative), voxel-downsample early;
-2. supervoxel centroids (VCCS-like) are the salient points;
+2. supervoxel centroids (VCCS-like) are the salient points; when either cloud has fewer than four (a
+   cloud of a few hundred points, whose voxels do not touch), the pair is run once more with coarser
+   supervoxels (:data:`SPARSE_SUPERVOXELS`) and the result's message says so;
 3. overlap hypotheses (:mod:`~gctr_cli.engine.search`, :func:`search_plan`): equal shares r of
    both clouds (the paper's search over 0.25/0.5/0.75/1.0) and one cloud as a part of the other.
    Each hypothesis draws its own random wide-baseline triangles, *local* to an overlap region of
@@ -44,6 +46,7 @@ generators spawned from ``seed``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -105,11 +108,7 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     plan = search_plan(cfg)
     ns, nt, src, tgt, rng_refine, rng_overlaps = _prepared_pair(source, target, cfg, seed, timer, len(plan))
     if len(src.salient) < 4 or len(tgt.salient) < 4:
-        raise DegenerateCloudError(f"too few salient points (source {len(src.salient)}, target "
-                                   f"{len(tgt.salient)}); the clouds are too small or too sparse for the "
-                                   f"supervoxel resolution (source {len(ns.points)} points, target "
-                                   f"{len(nt.points)}); for sparse clouds coarser supervoxels may do, e.g. "
-                                   "engine.supervoxel.voxel_ratio 0.05, seed_ratio 0.2 and min_voxels 1 in the config")
+        raise SparseCloudError(len(src.salient), len(tgt.salient), len(ns.points), len(nt.points))
     # Scale bounds in normalised units: s_orig = s_norm * size_t / size_s.
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size
@@ -154,9 +153,61 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
     timer = StageTimer({})
     try:
         run = run_search(source, target, cfg, seed, timer)
+        note = ""
+    except SparseCloudError as err:
+        # Sparse clouds (a few hundred points over the object): the supervoxels' voxels do not touch, and no
+        # supervoxel grows. Coarser ones, once, with the same seed; the verdict judges the answer as always.
+        coarse = coarser_supervoxels(cfg)
+        if coarse is None:
+            return _failed(f"{err}; engine.supervoxel is already as coarse as the retry for sparse clouds "
+                           f"({SPARSE_SETTINGS_TEXT})", "invalid_input", seed, start, timer.timings)
+        try:
+            run = run_search(source, target, coarse, seed, timer)
+        except SparseCloudError as again:
+            return _failed(f"{err}; with coarser supervoxels for sparse clouds ({SPARSE_SETTINGS_TEXT}) too (source "
+                           f"{again.salient[0]}, target {again.salient[1]})", "invalid_input", seed, start,
+                           timer.timings)
+        cfg = coarse
+        note = (f"registered with coarser supervoxels for sparse clouds ({SPARSE_SETTINGS_TEXT}): "
+                f"at the configured ones, {err}")
     except DegenerateCloudError as err:
         return _failed(str(err), "invalid_input", seed, start, timer.timings)
-    return _registered(run, source, target, cfg, seed, start, timer, _confirm)
+    result = _registered(run, source, target, cfg, seed, start, timer, _confirm)
+    if not note:
+        return result
+    return dataclasses.replace(result, message=note if not result.message else f"{result.message}; {note}")
+
+
+#: the supervoxel settings of the one retry for clouds too sparse for the configured ones: voxels large
+#: enough to touch on a cloud of a few hundred points, seeds spread accordingly, single-voxel supervoxels kept
+SPARSE_SUPERVOXELS = {"voxel_ratio": 0.05, "seed_ratio": 0.2, "min_voxels": 1}
+SPARSE_SETTINGS_TEXT = "engine.supervoxel." + ", ".join(f"{key} {value}" for key, value in SPARSE_SUPERVOXELS.items())
+
+
+class SparseCloudError(DegenerateCloudError):
+    """Too few salient points at the configured supervoxel resolution (:func:`register` retries coarser)."""
+
+    def __init__(self, source_salient: int, target_salient: int, source_points: int, target_points: int) -> None:
+        self.salient = (source_salient, target_salient)
+        self._args = (source_salient, target_salient, source_points, target_points)
+        super().__init__(f"too few salient points (source {source_salient}, target {target_salient}); the clouds "
+                         f"are too small or too sparse for the supervoxel resolution (source {source_points} "
+                         f"points, target {target_points})")
+
+    def __reduce__(self) -> tuple[type, tuple[int, int, int, int]]:  # picklable across worker processes
+        return type(self), self._args
+
+
+def coarser_supervoxels(cfg: EngineConfig) -> EngineConfig | None:
+    """``cfg`` with supervoxels at least as coarse as :data:`SPARSE_SUPERVOXELS` (larger voxels and seed
+    spacing, a smaller minimum size), or None when it is that coarse already."""
+    sv = cfg.supervoxel
+    update = {"voxel_ratio": max(sv.voxel_ratio, SPARSE_SUPERVOXELS["voxel_ratio"]),
+              "seed_ratio": max(sv.seed_ratio, SPARSE_SUPERVOXELS["seed_ratio"]),
+              "min_voxels": min(sv.min_voxels, SPARSE_SUPERVOXELS["min_voxels"])}
+    if all(getattr(sv, key) == value for key, value in update.items()):
+        return None
+    return cfg.model_copy(update={"supervoxel": sv.model_copy(update=update)})
 
 
 def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: int, start: float,
