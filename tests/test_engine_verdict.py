@@ -518,7 +518,7 @@ def test_a_clear_sparse_answer_is_still_accepted():
 
 
 def _probe(kind: str, models: str, n: int, noise: float, rep: int, offset: int, reverse_below: float = 0.3,
-           **verdict: float) -> dict:
+           **verdict: float | bool) -> dict:
     """One pair of ``data_scripts/probe_pairs.py`` registered with ``verdict.reverse_below`` and any other
     ``verdict`` keys set."""
     from data_scripts.probe_pairs import run_one
@@ -533,14 +533,31 @@ def test_a_mirrored_cloud_is_refused():
     """A dragon crop reflected through a plane (a cloud with a flipped axis, ``probe_pairs --kind mirrored``,
     tuning offset 0): the best rotation lays it on the dragon at confidence 0.55, a silent wrong answer
     without the mirror check; the mirror image fits far better (score 0.52 against 0.14), so it is refused."""
-    row = _probe("mirrored", "dragon", 2000, 0.002, 0, 0)
+    row = _probe("mirrored", "dragon", 2000, 0.002, 0, 0, reflection_check=False)  # the full check alone
     assert row["status"] == "failed" and row["confidence"] == pytest.approx(0.5543, abs=2e-3)
     assert row["refusal"] == "mirrored"
     assert row["score"] == pytest.approx(0.139, abs=2e-3) and row["mirror_score"] == pytest.approx(0.519, abs=2e-3)
     assert row["message"] == ("mirrored: the source reflected (x -> -x) fits the target better than any rotation of "
                               "it (score 0.52 against 0.14); one of the clouds has a flipped axis (a left-handed "
                               "coordinate system?): flip it and register again")
-    assert _probe("mirrored", "dragon", 2000, 0.002, 0, 0, mirror_below=0.0)["outcome"] == "silent wrong"
+    assert _probe("mirrored", "dragon", 2000, 0.002, 0, 0, mirror_below=0.0,
+                  reflection_check=False)["outcome"] == "silent wrong"
+
+
+def test_a_mirror_image_that_fits_well_is_refused_by_the_reflection_check():
+    """A bunny crop of 8,000 points reflected through a plane (``probe_pairs --kind mirrored``, tuning offset
+    0): the bunny is nearly mirror-symmetric, so the best rotation fits it well (score 0.40) and it was
+    accepted at confidence 1, a fit too good for the full mirror check (verdict.mirror_below 0.3). The
+    answer reflected through a principal plane of the source and refined fits much better: refused."""
+    row = _probe("mirrored", "bunny", 8000, 0.002, 0, 0)
+    assert row["status"] == "failed" and row["refusal"] == "mirrored" and row["confidence"] == 1.0
+    assert row["message"].startswith("mirrored: the source reflected fits the target better than any rotation of "
+                                     "it (score 0.7")
+    assert row["message"].endswith(" against 0.40, the answer reflected through a principal plane of the source and "
+                                   "refined); one of the clouds has a flipped axis (a left-handed coordinate "
+                                   "system?): flip it and register again")
+    unchecked = _probe("mirrored", "bunny", 8000, 0.002, 0, 0, reflection_check=False)
+    assert unchecked["outcome"] == "silent wrong" and unchecked["confidence"] == 1.0
 
 
 def test_the_mirror_check_keeps_a_right_answer_of_a_nearly_symmetric_shape():
@@ -554,6 +571,7 @@ def test_the_mirror_check_keeps_a_right_answer_of_a_nearly_symmetric_shape():
     _assert_correct(res, pair.T_gt, pair.source, pair.target)
     assert res.evidence["score"] < 0.5 and "mirror_score" in res.evidence
     assert res.evidence["mirror_score"] - res.evidence["score"] < cfg.verdict.mirror_margin
+    assert res.evidence["reflection_lead"] < cfg.verdict.mirror_margin  # and the reflection check passes it
 
 
 def test_the_mirror_search_reuses_the_forward_tensors_a_reflection_leaves_unchanged():

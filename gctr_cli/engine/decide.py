@@ -173,6 +173,36 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     return T_answer, verdict
 
 
+#: the reflection the mirror checks apply to the source (any reflection is this one up to a rotation)
+MIRROR = np.array([-1.0, 1.0, 1.0])
+
+
+def reflected_fit(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
+                  bounds_n: tuple[float, float]) -> tuple[float, float]:
+    """How much better the source's mirror image fits where the answer ``T`` put the source: the answer's
+    tight score, and the best tight score of ``T`` reflected through each of the three principal planes
+    of the moved source (through its centroid), each refined as a finalist is. A mirror image (a cloud
+    with a flipped axis) has no right rotation, but its best rotation lays the source's shape over the
+    target's as nearly as a rotation can, so one of those reflections is close to the mirror image's
+    true alignment, and the refinement finishes it. The refinement runs on the source reflected by
+    :data:`MIRROR` (so that it works on a proper similarity); its time is not booked. Both scores are
+    by the verdict's tight test at ``T``'s scale (:func:`tight_test`)."""
+    test = tight_test(src_ref, tgt_ref, similarity_scale(T), cfg)
+    answer = tight_agreement(T, src_ref, tgt_ref, test).score
+    mirrored = src_ref.reflected(MIRROR, cfg)
+    moved = apply(T, src_ref.points)
+    centre = moved.mean(axis=0)
+    flip = np.diag([*MIRROR, 1.0])
+    best = -np.inf
+    for normal in np.linalg.svd(moved - centre, full_matrices=False)[2]:
+        plane = np.eye(4)
+        plane[:3, :3] -= 2.0 * np.outer(normal, normal)
+        plane[:3, 3] = 2.0 * float(centre @ normal) * normal
+        _, agreement = _refine(plane @ T @ flip, mirrored, tgt_ref, cfg, bounds_n, StageTimer({}), test)
+        best = max(best, agreement.score)
+    return answer, float(best)
+
+
 def contact_freedom(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
                     distance: float) -> tuple[np.ndarray, float] | None:
     """The translation along which ``T``'s point-to-plane contact is least constrained and how free it is:

@@ -54,8 +54,10 @@ import numpy as np
 
 from gctr_cli.config import Config, EngineConfig
 from gctr_cli.engine.decide import (
+    MIRROR,
     decide,
     icp,
+    reflected_fit,
     refusal_message,
     similarity_scale,
     tight_agreement,
@@ -117,9 +119,6 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     candidates = search(src, tgt, plan, rng_overlaps, bounds_n, cfg, timer, tensors)
     return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine, tensors)
 
-
-#: the reflection the mirror check applies to the source (any reflection is this one up to a rotation)
-MIRROR = np.array([-1.0, 1.0, 1.0])
 
 #: an answer within this factor of a finite ``scale_bounds`` end is checked by :func:`settle_at_bound`
 NEAR_BOUND = 1.25
@@ -291,6 +290,19 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
     if refusal in ("weak_evidence", "low_confidence", "not_confirmed"):  # the others name scale_bounds already
         message += units_hint(nt.size / ns.size, cfg.scale_bounds)
     mirror: dict[str, float] = {}
+    if status == "ok" and confirm and cfg.verdict.reflection_check and refinement is not None:
+        # A mirror image that fits well (a whole bunny, score 0.4 at confidence 1) passes the full check
+        # below, which runs only on poor fits: the answer reflected through the source's principal planes.
+        t = time.perf_counter()
+        answer_score, reflected = reflected_fit(T_n, *refinement, cfg, bounds_n)
+        timer.add("verdict", t)
+        mirror["reflection_lead"] = reflected - answer_score
+        if reflected - answer_score >= cfg.verdict.mirror_margin:
+            status, refusal, message = "failed", "mirrored", (
+                f"mirrored: the source reflected fits the target better than any rotation of it (score "
+                f"{reflected:.2f} against {answer_score:.2f}, the answer reflected through a principal plane of the "
+                "source and refined); one of the clouds has a flipped axis (a left-handed coordinate system?): "
+                "flip it and register again")
     if status == "ok" and confirm and verdict.score < cfg.verdict.mirror_below:
         # A mirror image (a cloud with a flipped axis) has no right rotation, but the best one can stand out
         # among the other poor ones (confidence 1 on a mirrored bunny): is the source's reflection a better fit?
@@ -299,7 +311,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         mirrored = _registered(mirrored_run(run, cfg_m, seed, timer_m), np.asarray(source, dtype=float) * MIRROR,
                                target, cfg_m, seed, t, timer_m, False)
         timer.add("verdict", t)
-        mirror = {"mirror_score": mirrored.evidence.get("score", float("nan")),
+        mirror |= {"mirror_score": mirrored.evidence.get("score", float("nan")),
                   "mirror_confidence": mirrored.confidence, "mirror_ok": float(mirrored.status == "ok")}
         if mirrored.status == "ok" and mirror["mirror_score"] - verdict.score >= cfg.verdict.mirror_margin:
             status, refusal, message = "failed", "mirrored", (

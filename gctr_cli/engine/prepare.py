@@ -115,6 +115,14 @@ class RefinementCloud:
         surface = Surface.build(pts, normals, tree, cfg.verdict.sample_points, cfg.verdict.normal_balance)
         return cls(pts, normals, tree, surface, roughness)
 
+    def reflected(self, mirror: np.ndarray, cfg: EngineConfig) -> RefinementCloud:
+        """The same cloud reflected by the diagonal ``mirror`` (e.g. x -> -x): points and normals mirrored,
+        the tree and the verdict's sample built again (the reflection check, :func:`~gctr_cli.engine.decide.reflected_fit`)."""
+        points, normals = self.points * mirror, self.normals * mirror
+        tree = cKDTree(points)
+        return RefinementCloud(points, normals, tree, Surface.build(points, normals, tree, cfg.verdict.sample_points,
+                                                                    cfg.verdict.normal_balance), self.roughness)
+
     @classmethod
     def of(cls, prepared: PreparedCloud, points: np.ndarray, cfg: EngineConfig,
            rng: np.random.Generator) -> RefinementCloud:
