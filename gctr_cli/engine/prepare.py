@@ -117,7 +117,8 @@ class RefinementCloud:
 
     def reflected(self, mirror: np.ndarray, cfg: EngineConfig) -> RefinementCloud:
         """The same cloud reflected by the diagonal ``mirror`` (e.g. x -> -x): points and normals mirrored,
-        the tree and the verdict's sample built again (the reflection check, :func:`~gctr_cli.engine.decide.reflected_fit`)."""
+        the tree and the verdict's sample built again (the reflection check,
+        :func:`~gctr_cli.engine.decide.reflected_fit`)."""
         points, normals = self.points * mirror, self.normals * mirror
         tree = cKDTree(points)
         return RefinementCloud(points, normals, tree, Surface.build(points, normals, tree, cfg.verdict.sample_points,
