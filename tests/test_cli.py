@@ -797,17 +797,24 @@ def test_batch_lost_scheduler_says_whether_anything_was_saved(runner, monkeypatc
 @pytest.mark.engine
 def test_a_mirrored_real_scan_is_refused_and_registers_once_flipped_back(runner, tmp_path):
     """A real range scan of the bunny (data/scans/bun045.ply) with one axis flipped, as a left-handed export
-    gives it, against the bunny model: the best rotation fits it at confidence 1 (score 0.37). With the
-    mirror check for clouds of unknown axis conventions (``verdict.mirror_below: 0.5``; the default 0.3
-    lets this one through) its mirror image fits far better, so ``gctr register`` refuses it (exit 1) and
-    says to flip it; flipped back with ``gctr apply`` it registers, right against the shipped pose."""
+    gives it, against the bunny model: the best rotation fits it at confidence 1 (score 0.37), too well for
+    the full mirror check at its default (``verdict.mirror_below`` 0.3). The reflection check finds the
+    mirror image (the answer reflected through the model's plane of near-symmetry and refined) fitting far
+    better, so ``gctr register`` refuses it (exit 1) and says to flip it; with the full check for clouds
+    of unknown axis conventions (``mirror_below: 0.5``) and without the reflection check it is refused too;
+    flipped back with ``gctr apply`` it registers, right against the shipped pose."""
     config = tmp_path / "mixed.yaml"
-    config.write_text("engine:\n  verdict:\n    mirror_below: 0.5\n")
+    config.write_text("engine:\n  verdict:\n    mirror_below: 0.5\n    reflection_check: false\n")
     flip = tmp_path / "flip.txt"
     write_matrix(flip, np.diag([-1.0, 1.0, 1.0, 1.0]))
     scan, model = REPO / "data" / "scans" / "bun045.ply", REPO / "data" / "models" / "bunny.ply"
     flipped, back = tmp_path / "flipped.ply", tmp_path / "back.ply"
     assert invoke(runner, "apply", flip, scan, "-o", flipped).exit_code == 0
+    res = invoke(runner, "register", flipped, model)
+    assert res.exit_code == 1
+    assert ("message: mirrored: the source reflected fits the target better than any rotation of it (score 0.60 "
+            "against 0.37, the answer reflected through a principal plane of a cloud and refined); one of the "
+            "clouds has a flipped axis") in res.output
     res = invoke(runner, "register", flipped, model, "-c", config)
     assert res.exit_code == 1
     assert ("message: mirrored: the source reflected (x -> -x) fits the target better than any rotation of it "
@@ -817,7 +824,7 @@ def test_a_mirrored_real_scan_is_refused_and_registers_once_flipped_back(runner,
     i = lines.index("bun045.ply")
     gt = tmp_path / "gt.txt"
     write_matrix(gt, np.array([[float(v) for v in line.split()] for line in lines[i + 1:i + 5]]))
-    res = invoke(runner, "register", back, model, "--gt", gt, "-c", config)
+    res = invoke(runner, "register", back, model, "--gt", gt)
     assert res.exit_code == 0 and "status: ok" in res.output and "success: true" in res.output.lower()
 
 

@@ -548,12 +548,12 @@ def test_a_mirror_image_that_fits_well_is_refused_by_the_reflection_check():
     """A bunny crop of 8,000 points reflected through a plane (``probe_pairs --kind mirrored``, tuning offset
     0): the bunny is nearly mirror-symmetric, so the best rotation fits it well (score 0.40) and it was
     accepted at confidence 1, a fit too good for the full mirror check (verdict.mirror_below 0.3). The
-    answer reflected through a principal plane of the source and refined fits much better: refused."""
+    answer reflected through a principal plane of a cloud and refined fits much better: refused."""
     row = _probe("mirrored", "bunny", 8000, 0.002, 0, 0)
     assert row["status"] == "failed" and row["refusal"] == "mirrored" and row["confidence"] == 1.0
     assert row["message"].startswith("mirrored: the source reflected fits the target better than any rotation of "
                                      "it (score 0.7")
-    assert row["message"].endswith(" against 0.40, the answer reflected through a principal plane of the source and "
+    assert row["message"].endswith(" against 0.40, the answer reflected through a principal plane of a cloud and "
                                    "refined); one of the clouds has a flipped axis (a left-handed coordinate "
                                    "system?): flip it and register again")
     unchecked = _probe("mirrored", "bunny", 8000, 0.002, 0, 0, reflection_check=False)

@@ -180,27 +180,48 @@ MIRROR = np.array([-1.0, 1.0, 1.0])
 def reflected_fit(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
                   bounds_n: tuple[float, float]) -> tuple[float, float]:
     """How much better the source's mirror image fits where the answer ``T`` put the source: the answer's
-    tight score, and the best tight score of ``T`` reflected through each of the three principal planes
-    of the moved source (through its centroid), each refined as a finalist is. A mirror image (a cloud
-    with a flipped axis) has no right rotation, but its best rotation lays the source's shape over the
-    target's as nearly as a rotation can, so one of those reflections is close to the mirror image's
-    true alignment, and the refinement finishes it. The refinement runs on the source reflected by
-    :data:`MIRROR` (so that it works on a proper similarity); its time is not booked. Both scores are
-    by the verdict's tight test at ``T``'s scale (:func:`tight_test`)."""
+    tight score, and the best tight score of ``T`` reflected through one of six planes — the three
+    principal planes of the moved source (through its centroid) and the three of the target (through
+    its centroid) — and refined as a finalist is, in :data:`REFLECTION_ICP_ITERATIONS` iterations (only
+    the :data:`REFLECTIONS_REFINED` reflections that agree best with the target at the inlier distance).
+    A mirror image (a cloud with a flipped axis) has
+    no right rotation, but on a nearly symmetric object its best rotation lays it on the mirror-image place (a
+    bunny scan on the other flank), which the object's plane of symmetry — about a principal plane of
+    the whole, source or target — takes back to the true place; the refinement finishes it. The
+    refinement runs on the source reflected by :data:`MIRROR` (so that it works on a proper similarity);
+    its time is not booked. Both scores are by the verdict's tight test at ``T``'s scale
+    (:func:`tight_test`)."""
     test = tight_test(src_ref, tgt_ref, similarity_scale(T), cfg)
     answer = tight_agreement(T, src_ref, tgt_ref, test).score
     mirrored = src_ref.reflected(MIRROR, cfg)
-    moved = apply(T, src_ref.points)
-    centre = moved.mean(axis=0)
     flip = np.diag([*MIRROR, 1.0])
-    best = -np.inf
-    for normal in np.linalg.svd(moved - centre, full_matrices=False)[2]:
+    starts = []
+    for normal, centre in principal_planes(apply(T, src_ref.points)) + principal_planes(tgt_ref.points):
         plane = np.eye(4)
         plane[:3, :3] -= 2.0 * np.outer(normal, normal)
         plane[:3, 3] = 2.0 * float(centre @ normal) * normal
-        _, agreement = _refine(plane @ T @ flip, mirrored, tgt_ref, cfg, bounds_n, StageTimer({}), test)
-        best = max(best, agreement.score)
-    return answer, float(best)
+        starts.append(plane @ T @ flip)
+    # only the likeliest starts are refined (ICP is the cost): ranked as the search ranks, at the inlier distance
+    starts.sort(key=lambda S: -surface_agreement(S, mirrored.surface, tgt_ref.surface, cfg.inlier_distance_ratio,
+                                                 cfg.verdict.max_normal_angle_deg).score)
+    short = cfg.model_copy(update={"refine": cfg.refine.model_copy(update={"iterations": REFLECTION_ICP_ITERATIONS})})
+    refined = (_refine(S, mirrored, tgt_ref, short, bounds_n, StageTimer({}), test)[1].score
+               for S in starts[:REFLECTIONS_REFINED])
+    return answer, float(max(refined))
+
+
+#: how many of the six reflections of :func:`reflected_fit` are refined, and in how many ICP iterations: on
+#: mirrored probe pairs of the bunny and the dragon (tuning offset 0) and a flipped bunny scan, the best
+#: unrefined reflection refined in 8 iterations led the answer by as much as the best two in 15 (+0.16 to
+#: +0.55) at a third of the time (about 30 ms a pair), and right answers' leads stayed at -0.04 or below
+REFLECTIONS_REFINED = 1
+REFLECTION_ICP_ITERATIONS = 8
+
+
+def principal_planes(points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The three principal planes of ``points``: (unit normal, a point on it, the centroid) each."""
+    centre = points.mean(axis=0)
+    return [(normal, centre) for normal in np.linalg.svd(points - centre, full_matrices=False)[2]]
 
 
 def contact_freedom(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,

@@ -292,7 +292,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
     mirror: dict[str, float] = {}
     if status == "ok" and confirm and cfg.verdict.reflection_check and refinement is not None:
         # A mirror image that fits well (a whole bunny, score 0.4 at confidence 1) passes the full check
-        # below, which runs only on poor fits: the answer reflected through the source's principal planes.
+        # below, which runs only on poor fits: the answer reflected through the clouds' principal planes.
         t = time.perf_counter()
         answer_score, reflected = reflected_fit(T_n, *refinement, cfg, bounds_n)
         timer.add("verdict", t)
@@ -300,8 +300,8 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         if reflected - answer_score >= cfg.verdict.mirror_margin:
             status, refusal, message = "failed", "mirrored", (
                 f"mirrored: the source reflected fits the target better than any rotation of it (score "
-                f"{reflected:.2f} against {answer_score:.2f}, the answer reflected through a principal plane of the "
-                "source and refined); one of the clouds has a flipped axis (a left-handed coordinate system?): "
+                f"{reflected:.2f} against {answer_score:.2f}, the answer reflected through a principal plane of a "
+                "cloud and refined); one of the clouds has a flipped axis (a left-handed coordinate system?): "
                 "flip it and register again")
     if status == "ok" and confirm and verdict.score < cfg.verdict.mirror_below:
         # A mirror image (a cloud with a flipped axis) has no right rotation, but the best one can stand out
