@@ -571,7 +571,8 @@ def test_the_mirror_check_keeps_a_right_answer_of_a_nearly_symmetric_shape():
     _assert_correct(res, pair.T_gt, pair.source, pair.target)
     assert res.evidence["score"] < 0.5 and "mirror_score" in res.evidence
     assert res.evidence["mirror_score"] - res.evidence["score"] < cfg.verdict.mirror_margin
-    assert not res.evidence["reflection_lead"] >= cfg.verdict.mirror_margin  # the reflection check passes it (NaN: not refined)
+    # the reflection check passes it (NaN: its reflection was not even worth refining)
+    assert not res.evidence["reflection_lead"] >= cfg.verdict.mirror_margin
 
 
 def test_the_mirror_search_reuses_the_forward_tensors_a_reflection_leaves_unchanged():
