@@ -190,9 +190,10 @@ class VerdictConfig(_Strict):
         0.1, ge=0, le=1, description="... the lead of the mirrored source's score over the answer's that refuses it")
     reflection_check: bool = Field(
         True,
-        description="every accepted answer is also reflected through the moved source's three principal planes "
-                    "and refined; if one scores mirror_margin more than the answer, the pair is refused as mirrored "
-                    "(a mirror image that fits well, which the check above does not look at); false = off")
+        description="every accepted answer is also reflected through the principal planes of both clouds and the "
+                    "best reflection refined when it agrees well; if it scores mirror_margin more than the answer, "
+                    "the pair is refused as mirrored (a mirror image that fits well, which the check above does not "
+                    "look at); false = off")
     full_margin_points: int = Field(
         800, ge=0,
         description="verdict samples of fewer points (sparse clouds) need a larger lead: the confidence is "

@@ -185,10 +185,10 @@ def reflected_fit(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCl
     its centroid) — and refined as a finalist is, in :data:`REFLECTION_ICP_ITERATIONS` iterations: only
     the one that agrees best with the target at the inlier distance, and only if it agrees at least
     :data:`REFLECTION_START_RATIO` as well as the answer does there (else the reflected score is NaN).
-    A mirror image (a cloud with a flipped axis) has
-    no right rotation, but on a nearly symmetric object its best rotation lays it on the mirror-image place (a
-    bunny scan on the other flank), which the object's plane of symmetry — about a principal plane of
-    the whole, source or target — takes back to the true place; the refinement finishes it. The
+    A mirror image (a cloud with a flipped axis) has no right rotation, but on a nearly symmetric object
+    its best rotation lays it on the mirror-image place (a bunny scan on the other flank), which the
+    object's plane of symmetry — about a principal plane of the whole, source or target — takes back to
+    the true place; the refinement finishes it. The
     refinement runs on the source reflected by :data:`MIRROR` (so that it works on a proper similarity);
     its time is not booked. Both scores are by the verdict's tight test at ``T``'s scale
     (:func:`tight_test`)."""
