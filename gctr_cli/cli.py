@@ -274,7 +274,7 @@ def main(verbose: int) -> None:
 @click.option("--seed", type=click.IntRange(min=0), help="Engine seed (default: the config seed). To reproduce a "
               "batch row, pass its seed column.")
 @click.option("--aligned", type=_Path(dir_okay=False, path_type=Path),
-              help="Also write SOURCE moved onto TARGET to this file (.ply, .pcd, .las, .laz, .xyz, .pts, .txt; "
+              help="Also write SOURCE moved onto TARGET to this file (.ply, .pcd, .las, .laz, .xyz, .pts, .txt, .csv; "
                    "attributes kept where the format allows).")
 @verbose_option
 def register(source: Path, target: Path, config_path: str | None, output: Path | None, gt: Path | None,
@@ -449,13 +449,13 @@ def _check_writable(path: Path | None) -> None:
 @click.argument("matrix", type=_Path(dir_okay=False, path_type=Path))
 @click.argument("input", type=_Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
-              help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts or .txt (missing folders are created).")
+              help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts, .txt or .csv (missing folders are created).")
 @verbose_option
 def apply(matrix: Path, input: Path, output: Path) -> None:  # noqa: A002 - the argument's name in --help
     """Move the cloud INPUT by the 4x4 MATRIX and write it to OUTPUT.
 
     MATRIX is a source->target matrix file as written by register -o or batch (matrices/<pair_id>.txt).
-    INPUT may be any format gctr reads (.ply .pcd .xyz .pts .txt .las .laz .e57); OUTPUT's extension
+    INPUT may be any format gctr reads (.ply .pcd .xyz .pts .txt .csv .las .laz .e57); OUTPUT's extension
     chooses its format. Coordinates stay float64 (LAS/LAZ: a scale fine enough for the extent);
     attributes (colours, intensity, classification ...) are kept where OUTPUT's format allows, and
     normals are turned with the surface (for a matrix that is not a similarity, by its inverse

@@ -23,6 +23,11 @@ from pathlib import Path
 from gctr_cli.fsutil import atomic_write, write_error
 from gctr_cli.io import SUPPORTED_EXTENSIONS
 
+#: the extensions folder pairing takes as point clouds: every readable one but ``.csv``, which in a folder
+#: of scans is far more often a table (a log, a manifest, gctr's own outputs) than a cloud; a ``.csv``
+#: cloud is read when a manifest or the command line names it
+FOLDER_EXTENSIONS = tuple(e for e in SUPPORTED_EXTENSIONS if e != ".csv")
+
 __all__ = ["ManifestError", "PairSpec", "build_manifest", "read_manifest", "write_manifest"]
 
 logger = logging.getLogger(__name__)
@@ -238,7 +243,7 @@ def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:
     for f in sorted(folder.iterdir()):
         # a link counts whatever it points to (a DVC cache file without extension, or something
         # unreadable: the pair's row then says what is wrong with it)
-        hidden_or_other = f.name.startswith(".") or f.suffix.lower() not in SUPPORTED_EXTENSIONS
+        hidden_or_other = f.name.startswith(".") or f.suffix.lower() not in FOLDER_EXTENSIONS
         if hidden_or_other or not (f.is_symlink() or f.is_file()):
             continue
         found.setdefault(f.stem, []).append(f)
@@ -261,7 +266,7 @@ def _nested_clouds(folder: Path) -> list[str]:
         if d.name.startswith(".") or not d.is_dir():
             continue
         try:
-            if any(f.suffix.lower() in SUPPORTED_EXTENSIONS and not f.name.startswith(".") for f in d.iterdir()):
+            if any(f.suffix.lower() in FOLDER_EXTENSIONS and not f.name.startswith(".") for f in d.iterdir()):
                 nested.append(d.name + "/")
         except OSError:
             continue
@@ -273,7 +278,8 @@ def build_manifest(
 ) -> list[PairSpec]:
     """Pair the point clouds of two folders by file stem (``a.ply`` in source with ``a.pcd`` in target).
 
-    Only files with a supported extension are considered (hidden files are ignored); ``pair_id`` is the
+    Only files with a point-cloud extension are considered (:data:`FOLDER_EXTENSIONS`: not ``.csv``;
+    hidden files are ignored); ``pair_id`` is the
     stem, and the ground truth is ``<gt_dir>/<stem>.txt`` when that file exists. Pairs are sorted by
     ``pair_id``. Stems present on one side only are logged as a warning; stems unsafe as a pair_id are
     skipped with a warning. Raises :class:`ManifestError` if a folder is missing, a folder holds two

@@ -582,7 +582,7 @@ def test_text_writers_round_trip_exactly_with_attribute_columns(tmp_path, rich_c
 
 
 def test_every_read_extension_is_listed_and_writers_cover_all_but_e57():
-    assert set(SUPPORTED_EXTENSIONS) == {".ply", ".pcd", ".xyz", ".pts", ".txt", ".las", ".laz", ".e57"}
+    assert set(SUPPORTED_EXTENSIONS) == {".ply", ".pcd", ".xyz", ".pts", ".txt", ".csv", ".las", ".laz", ".e57"}
     assert set(WRITE_EXTENSIONS) == set(SUPPORTED_EXTENSIONS) - {".e57"}
 
 

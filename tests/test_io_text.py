@@ -425,3 +425,54 @@ def test_text_colours_reach_a_las_output_at_their_brightness(tmp_path):
     np.testing.assert_array_equal(np.asarray(las.blue), extra[:, 3].astype(np.uint16) * 257)
     (tmp_path / "half.xyz").write_text("# x y z red green blue\n" + _rows(pts, np.full((200, 3), 0.5)))
     assert read_point_cloud(tmp_path / "half.xyz").attributes["red"].dtype == np.float64
+
+
+# ----------------------------------------------------------------------------------------------------
+# .csv files and quoted cells (spreadsheet and pandas exports)
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_a_csv_file_round_trips_with_its_attributes(tmp_path):
+    """``.csv`` is read and written as text: a header line ``x,y,z,intensity`` and comma-separated rows,
+    read back exactly with the attribute named by the header."""
+    pts = _points(N_BIG)
+    intensity = RNG.uniform(0.0, 1.0, N_BIG)
+    write_point_cloud(tmp_path / "out.csv", PointCloud(pts, {"intensity": intensity}))
+    lines = (tmp_path / "out.csv").read_text().splitlines()
+    assert lines[0] == "x,y,z,intensity"
+    assert lines[1].count(",") == 3 and " " not in lines[1]
+    back = read_point_cloud(tmp_path / "out.csv")
+    np.testing.assert_array_equal(back.points, pts)
+    np.testing.assert_array_equal(back.attributes["intensity"], intensity)
+
+
+@pytest.mark.parametrize("style", ["all", "nonnumeric_text", "decimal_comma"])
+def test_quoted_cells_are_read_as_their_values(tmp_path, style):
+    """A spreadsheet or pandas export quotes its cells: ``"x","y","z"`` and ``"1.5","2.25","3"`` (every
+    cell), a quoted label ``"Punkt 1, Gruppe A"`` after x y z (one cell, not three), or decimal commas
+    quoted in a comma-separated file (``"1,5","2,25","3,0"`` is x=1.5 y=2.25 z=3, never six columns).
+    They used to be refused as having no numeric x y z columns, or read as the wrong columns."""
+    pts = _points(N_BIG)
+    if style == "all":
+        rows = ['"x","y","z","intensity"'] + [",".join(f'"{v}"' for v in (*p, i)) for i, p in enumerate(pts)]
+    elif style == "nonnumeric_text":
+        rows = ["x,y,z,label"] + [f'{p[0]},{p[1]},{p[2]},"Punkt {i}, Gruppe A"' for i, p in enumerate(pts)]
+    else:
+        rows = ['"x","y","z"'] + [",".join(f'"{_decimal_comma(v)}"' for v in p) for p in pts]
+    path = tmp_path / "export.csv"
+    path.write_text("\n".join(rows) + "\n")
+    back = read_point_cloud(path)
+    np.testing.assert_allclose(back.points, pts, rtol=0, atol=1e-9)
+    if style == "all":
+        np.testing.assert_array_equal(back.attributes["intensity"], np.arange(N_BIG))
+    if style == "nonnumeric_text":
+        assert back.attributes == {}  # a text column is not an attribute (a warning says so)
+
+
+def test_a_stray_quote_is_an_error_naming_the_line(tmp_path):
+    pts = _points(30)
+    rows = [f"{p[0]},{p[1]},{p[2]}" for p in pts]
+    rows[12] = f'"{pts[12][0]},{pts[12][1]},{pts[12][2]}'
+    path = tmp_path / "bad.csv"
+    path.write_text("\n".join(rows) + "\n")
+    _error(path, "line 13", "non-numeric value")

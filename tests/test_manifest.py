@@ -315,6 +315,16 @@ def test_subfolders_with_clouds_are_named_not_searched(tmp_path, caplog):
     assert "only the folders' own files pair; subfolders are not searched" in caplog.text
 
 
+def test_csv_files_are_not_taken_for_clouds_by_folder_pairing(folders):
+    """``.csv`` clouds are read when named, but a folder's CSV files (logs, a manifest, ``s01.csv`` beside
+    ``s01.ply``) are tables far more often: they neither pair nor make a stem ambiguous."""
+    src, tgt, gt = folders
+    for name in ("s01.csv", "pairs.csv"):
+        (src / name).write_text("x")
+    (tgt / "pairs.csv").write_text("x")
+    assert [p.pair_id for p in build_manifest(src, tgt, gt)] == ["s01", "s02", "s03"]
+
+
 def test_build_ambiguous_stem(folders):
     src, tgt, _ = folders
     (src / "s01.pcd").write_text("x")

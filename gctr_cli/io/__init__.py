@@ -21,7 +21,8 @@ extension             read                         write
 ``.pcd``              ascii, binary, compressed    binary float64 x y z + attributes (aligned
                                                    clouds: binary float32, or ASCII float64)
 ``.xyz .txt .pts``    text columns (+ attributes)  ``%.17g`` text (+ attribute columns; .pts:
-                                                   intensity, red green blue)
+``.csv``              (quoted cells too)           intensity, red green blue; .csv: a
+                                                   ``x,y,z,...`` header, commas)
 ``.las .laz``         LAS 1.0-1.4, LAZ (lazrs)     LAS/LAZ 1.4 with attributes; from a LAS
                                                    source: its version, point format, CRS
                                                    records and header ids
@@ -135,7 +136,8 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     of the transform since) and offset, which keeps every digit the source had. Attributes are kept
     where the format allows: PLY and PCD keep every numeric attribute, LAS fills its standard dimensions
     (intensity, classification, colours ...) and stores the others as extra bytes, ``.xyz``/``.txt``
-    files get one column per attribute after ``x y z`` (named in a ``# x y z ...`` line), ``.pts`` files
+    files get one column per attribute after ``x y z`` (named in a ``# x y z ...`` line; ``.csv`` files
+    in an ``x,y,z,...`` header line, comma-separated), ``.pts`` files
     only intensity and 8-bit red green blue, the columns PTS readers know (the others are named in a
     warning). A LAS/LAZ output of a LAS source keeps the source's version, point format, CRS records and
     header ids (:func:`gctr_cli.io.las.las_bytes`); any other output of it logs a warning when the

@@ -433,12 +433,12 @@ def pack_columns(cols: list[np.ndarray]) -> bytes:
 TEXT_BLOCK_ROWS = 65536
 
 
-def format_columns(cols: list[np.ndarray]) -> bytes:
+def format_columns(cols: list[np.ndarray], separator: str = " ") -> bytes:
     """Text rows of the columns: floats as ``%.17g`` (exact round trip), integers as integers."""
     if not cols or len(cols[0]) == 0:
         return b""
     fmts = ["%.17g" if c.dtype.kind == "f" else "%d" for c in cols]
-    line_fmt = " ".join(fmts) + "\n"
+    line_fmt = separator.join(fmts) + "\n"
     # in blocks, so that the Python objects of the formatting stay small next to the text itself
     blocks = []
     for start in range(0, len(cols[0]), TEXT_BLOCK_ROWS):

@@ -43,6 +43,12 @@ def _write_text(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: 
     return text_bytes(cloud)
 
 
+def _write_csv(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
+    from gctr_cli.io.text import csv_bytes
+
+    return csv_bytes(cloud)
+
+
 def _write_pts(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
     from gctr_cli.io.text import pts_bytes
 
@@ -77,6 +83,7 @@ FORMATS: tuple[Format, ...] = (
     Format("XYZ text", (".xyz",), _reader("text", "read_text"), _write_text),
     Format("PTS text", (".pts",), _reader("text", "read_text"), _write_pts),
     Format("text", (".txt",), _reader("text", "read_text"), _write_text),
+    Format("CSV text", (".csv",), _reader("text", "read_text"), _write_csv),
     Format("LAS", (".las",), _reader("las", "read_las"), _write_las),
     Format("LAZ", (".laz",), _reader("las", "read_las"), _write_laz),
     Format("E57", (".e57",), _reader("e57", "read_e57"), None),

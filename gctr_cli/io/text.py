@@ -1,4 +1,4 @@
-"""Text clouds: ``.xyz`` / ``.pts`` / ``.txt`` (reader and writer).
+"""Text clouds: ``.xyz`` / ``.pts`` / ``.txt`` / ``.csv`` (reader and writer).
 
 The first three columns are x y z; leading header lines that are not numbers, a leading point-count
 line (one number on its own) and ``#`` / ``//`` comment lines are skipped. Columns are separated by
@@ -6,7 +6,9 @@ blanks, tabs, commas or semicolons. Exports with decimal commas are read when th
 them unambiguous (tabs or semicolons: ``1,5;2,25;3`` is x=1.5 y=2.25 z=3); the x y z cells alone
 decide, so a later ``14.03.2024 10:15:00,000`` or ``Punkt 1, Gruppe A`` changes nothing. Decimal
 commas separated by blanks (``1,5 2,25 3,0``) are refused with a message saying so, because they
-cannot be told apart from comma-separated columns. The dialect is read off the first data line and
+cannot be told apart from comma-separated columns. Double-quoted cells of spreadsheet and pandas
+exports are unquoted first (``"1.5","2.25"``; ``"1,5","2,25"`` is a quoted decimal comma, and a quoted
+label with commas stays one cell: :func:`_unquoted`). The dialect is read off the first data line and
 held to: a later line that does not fit it, or has an empty x/y/z cell, is an error naming the line,
 never a silent shift of the columns. A leading point-count line that promises more points than
 follow is an error (a truncated file); a count line further down starts the next section of a
@@ -19,8 +21,9 @@ intensity red`` as gctr writes it, ``X Y Z R G B``, ``//X,Y,Z,Intensity``), else
 Leica layout, else ``column_4`` ... (:func:`_attribute_names`). Otherwise x y z are read and one
 warning names the first line that does not fit: columns are never dropped without a word.
 
-Written (:func:`text_bytes`, :func:`pts_bytes`) as ``%.17g`` rows: ``.xyz`` / ``.txt`` with every
-numeric attribute after x y z, named in a ``# x y z name ...`` line; ``.pts`` as the point count
+Written (:func:`text_bytes`, :func:`csv_bytes`, :func:`pts_bytes`) as ``%.17g`` rows: ``.xyz`` / ``.txt``
+with every numeric attribute after x y z, named in a ``# x y z name ...`` line; ``.csv`` the same
+comma-separated under an ``x,y,z,name,...`` header line; ``.pts`` as the point count
 and rows ``x y z [intensity] [red green blue]`` only, the layouts PTS readers know by their number of
 columns (a comment line made Open3D read every point as (0, 0, 0)).
 
@@ -47,7 +50,7 @@ from gctr_cli.io.ply import format_columns
 
 logger = logging.getLogger("gctr_cli.io")
 
-__all__ = ["pts_bytes", "read_text", "text_bytes"]
+__all__ = ["csv_bytes", "pts_bytes", "read_text", "text_bytes"]
 
 #: the first block of a text cloud is small (header detection runs line by line); later ones are large
 _TEXT_FIRST_BLOCK = 1 << 16
@@ -84,6 +87,30 @@ _NAME_ALIASES = {"r": "red", "g": "green", "b": "blue", "i": "intensity"}
 _PTS_COLUMNS = {4: ["intensity"], 6: ["red", "green", "blue"], 7: ["intensity", "red", "green", "blue"]}
 #: an attribute name every writer takes: a PLY/PCD field name and a LAS extra-bytes name (32 bytes)
 _FIELD_NAME = re.compile(r"[a-z_][a-z0-9_]{0,31}")
+
+
+#: a double-quoted cell of a spreadsheet or pandas export (``"1.5","2.25"``), within one line
+_QUOTED_CELL = re.compile(rb'"([^"\r\n]*)"')
+#: what :func:`_unquoted` turns blanks and separators inside a quoted text cell into
+_IN_QUOTES = bytes.maketrans(b",; \t", b"____")
+
+
+def _unquoted(block: bytes) -> bytes:
+    """``block`` with its double-quoted cells unquoted: a number as the number (``"1,5"``, a decimal
+    comma quoted in a comma-separated export, as ``1.5``), any other text with its blanks and
+    separators as ``_``, so that it stays one cell (``"Scalar field"`` -> ``Scalar_field``,
+    ``"Punkt 1, Gruppe A"`` one non-numeric cell, never three columns). A stray quote stays, and the
+    line is then reported as having a non-numeric value."""
+    if b'"' not in block:
+        return block
+
+    def plain(cell: re.Match[bytes]) -> bytes:
+        text = cell.group(1).strip()
+        if _DEC_COMMA_TOKEN.match(text.decode("latin-1")):
+            return text.replace(b",", b".")
+        return text.translate(_IN_QUOTES)
+
+    return _QUOTED_CELL.sub(plain, block)
 
 
 def _is_number(tok: str) -> bool:
@@ -180,6 +207,7 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     for k, block in enumerate(_blocks(fh, path)):
         if k == 0 and block.startswith(b"\xef\xbb\xbf"):  # UTF-8 byte order mark
             block = block[3:]
+        block = _unquoted(block)
         ncols = state["ncols"] if state["extras"] else None
         arr = None if state["header"] else _fast(block, state["table"], state["blank"], ncols)
         if arr is not None:
@@ -440,17 +468,31 @@ def _extra_values(rows: list[list[str]], linenos: list[int], ncols: int, state: 
     return values.reshape(len(rows), max(ncols - 3, 0))
 
 
+def _numeric_attributes(cloud: PointCloud) -> list[tuple[str, np.ndarray]]:
+    """The attributes a text row can hold: one number per point."""
+    n = len(cloud.points)
+    return [(k, np.asarray(v)) for k, v in cloud.attributes.items()
+            if np.asarray(v).shape == (n,) and np.asarray(v).dtype.kind in "fiu"]
+
+
 def text_bytes(cloud: PointCloud) -> bytes:
     """Text rows ``x y z [attributes...]`` (``%.17g``, exact round trip) of an ``.xyz`` / ``.txt`` file;
     with attributes, a ``# x y z name ...`` comment line names the columns."""
     pts = np.asarray(cloud.points, dtype=np.float64)
-    n = len(pts)
-    extra = [(k, np.asarray(v)) for k, v in cloud.attributes.items()
-             if np.asarray(v).shape == (n,) and np.asarray(v).dtype.kind in "fiu"]
+    extra = _numeric_attributes(cloud)
     head = ""
     if extra:
         head += "# x y z " + " ".join("_".join(str(k).split()) for k, _ in extra) + "\n"
     return head.encode("ascii") + format_columns([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra])
+
+
+def csv_bytes(cloud: PointCloud) -> bytes:
+    """A ``.csv`` file: a header line ``x,y,z,name,...`` and comma-separated rows (``%.17g``), with every
+    numeric attribute after x y z (as :func:`text_bytes`)."""
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    extra = _numeric_attributes(cloud)
+    head = ",".join(["x", "y", "z"] + ["_".join(str(k).split()) for k, _ in extra]) + "\n"
+    return head.encode("ascii") + format_columns([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra], ",")
 
 
 def pts_bytes(cloud: PointCloud, path: Path | None = None) -> bytes:
