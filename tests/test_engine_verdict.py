@@ -467,6 +467,14 @@ def test_refusal_message_states_the_share_explained_and_the_lead():
     v = Verdict(confidence=0.1496, score=0.5, rival_score=0.4626, support=1.0, agreement=a)
     assert "confidence 0.14, threshold 0.15" in refusal_message(v, cfg)
     assert message(0.50, 0.48).startswith("ambiguous: two distinct alignments")
+    # a rival above the answer is an unrefined transform of the pool (refined finalists are ranked): said so
+    assert "(score 0.10 vs 0.11, the alternative found by the search and not refined)" in message(0.10, 0.11)
+    a = Agreement(0.3, 0.2, 0.6, 0.6, 0.25)  # score 0.25 - 0.15 = 0.10, 25% explained: ambiguous
+    v = Verdict(confidence=0.0, score=a.score, rival_score=0.14, support=1.0, agreement=a)
+    assert refusal_message(v, cfg).startswith("ambiguous: two distinct alignments explain the data almost equally "
+                                              "well (score 0.10 vs 0.14, the alternative found by the search and "
+                                              "not refined; confidence 0.00")
+    assert "did not refine" not in message(0.50, 0.48)
 
 
 def test_a_sparse_verdict_needs_a_larger_lead():

@@ -339,9 +339,14 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     more of the clouds beside each other than on each other), and what the relief evidence gave, when it
     gave anything (:func:`relief_confidence`), and that the clouds are sparse when the verdict's samples
     were too small for a full confidence (:func:`gctr_cli.engine.verdict.sample_weight`). The confidence
-    is shown truncated to two decimals, so that a refused answer never reads as reaching the threshold."""
+    is shown truncated to two decimals, so that a refused answer never reads as reaching the threshold.
+    A rival that scores more than the answer is named as unrefined (the only kind that can)."""
     shown = truncated(verdict.confidence)
     scores = f"score {verdict.score:.2f} vs {verdict.rival_score:.2f}"
+    if verdict.rival_score > verdict.score:
+        # the refined finalists are ranked, so only an unrefined transform of the search's pool outscores
+        # the answer: say so, or "the best alignment" reads as scoring below its alternative
+        scores += ", the alternative found by the search and not refined"
     relief = ("" if verdict.relief_confidence <= 0 else
               f"; the relief over the target's dominant plane backs it to {truncated(verdict.relief_confidence)}")
     sparse = ("" if verdict.sample_weight >= 1 else
