@@ -151,6 +151,21 @@ def test_laz_lying_point_count_and_corrupt_data(tmp_path):
     assert "Error" not in msg and "Exception" not in msg, msg
 
 
+@pytest.mark.parametrize("cut", [100, 20_000, 200_000])
+def test_a_truncated_laz_file_is_called_truncated(tmp_path, cut):
+    """An interrupted copy or download of a LAZ file ends before the chunk table its point data point to;
+    it was reported only as 'corrupt or unsupported LAZ file: the point data cannot be decompressed'."""
+    utm_las(tmp_path / "ok.laz", n=120_000)
+    data = (tmp_path / "ok.laz").read_bytes()
+    table = int.from_bytes(data[int.from_bytes(data[96:100], "little"):][:8], "little")
+    (tmp_path / "cut.laz").write_bytes(data[: len(data) - cut])
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(tmp_path / "cut.laz")
+    assert str(ei.value) == (f"{tmp_path / 'cut.laz'}: truncated or corrupt LAZ file: its chunk table should start "
+                             f"at byte {table} but the file has only {len(data) - cut} bytes (an interrupted copy "
+                             "or download?)")
+
+
 WKT = ('PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
        'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
        'PARAMETER["central_meridian",15],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],'

@@ -111,6 +111,17 @@ def _records_after(head: bytes, size: int, count: int) -> int:
     return max(end - declared_end, 0) // record_len
 
 
+def _laz_chunk_table_offset(fh, head: bytes) -> int | None:
+    """Where a LAZ file's chunk table starts, as the 8 bytes at the start of its point data say; None when
+    they do not say (-1: written to a stream, with the offset at the end of the file). A file cut short
+    (an interrupted copy) ends before it: said as such, where lazrs only fails to decompress."""
+    (offset_to_points,) = struct.unpack_from("<I", head, 96)
+    fh.seek(offset_to_points)
+    raw = fh.read(8)
+    table = struct.unpack("<q", raw)[0] if len(raw) == 8 else -1
+    return None if table == -1 else table
+
+
 def _laz_points_at_least(fh, head: bytes, size: int) -> int | None:
     """A lower bound of the points a LAZ file holds, from its chunk table: more than ``chunks - 1`` chunks
     of the LASzip record's chunk size. None when that cannot be told from a few bytes (variable-size
@@ -164,6 +175,10 @@ def read_las(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         _say_records_after(path, count, _records_after(head, size, count))
         fh.seek(0)
         return _read_points(path, fh, count, compressed, attributes)
+    table = _laz_chunk_table_offset(fh, head)
+    if table is not None and table > size - 8:
+        raise PointCloudError(f"{path}: truncated or corrupt LAZ file: its chunk table should start at byte {table} "
+                              f"but the file has only {size} bytes (an interrupted copy or download?)")
     present = _laz_points_at_least(fh, head, size)
     _say_records_after(path, count, max((present or 0) - count, 0), "at least ")
     raw_bytes = count * int.from_bytes(head[105:107], "little")
