@@ -435,6 +435,20 @@ def test_scattered_points_are_registered_with_the_coarser_retry():
     assert np.allclose(res.transform, to_matrix(2.0, np.eye(3), np.ones(3)), atol=1e-6)
 
 
+def test_a_refused_coarser_retry_says_it_was_tried_not_registered():
+    """Two unrelated sets of 200 scattered points: retried with the coarser supervoxels and refused; the
+    message said "registered with coarser supervoxels" after the reason for refusing."""
+    rng = np.random.default_rng(3)
+    res = register(rng.normal(size=(200, 3)), np.random.default_rng(5).normal(size=(200, 3)) * 2.0 + 1.0,
+                   EngineConfig(), seed=0)
+    assert res.status == "failed" and res.refusal == "low_confidence", res.message
+    assert "registered" not in res.message
+    assert res.message.endswith("; tried with coarser supervoxels for sparse clouds (engine.supervoxel.voxel_ratio "
+                                "0.05, seed_ratio 0.2, min_voxels 1): at the configured ones, too few salient points "
+                                "(source 0, target 0); the clouds are too small or too sparse for the supervoxel "
+                                "resolution (source 200 points, target 200)")
+
+
 def test_run_search_is_registers_search(monkeypatch):
     """``run_search`` (stages 1-4, for developer tools) raises on what ``register`` reports as failed,
     with the same message, and finds exactly the candidates ``register`` decides among."""

@@ -167,13 +167,13 @@ def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Conf
                            f"{again.salient[0]}, target {again.salient[1]})", "invalid_input", seed, start,
                            timer.timings)
         cfg = coarse
-        note = (f"registered with coarser supervoxels for sparse clouds ({SPARSE_SETTINGS_TEXT}): "
-                f"at the configured ones, {err}")
+        note = f"with coarser supervoxels for sparse clouds ({SPARSE_SETTINGS_TEXT}): at the configured ones, {err}"
     except DegenerateCloudError as err:
         return _failed(str(err), "invalid_input", seed, start, timer.timings)
     result = _registered(run, source, target, cfg, seed, start, timer, _confirm)
     if not note:
         return result
+    note = f"{'registered' if result.ok else 'tried'} {note}"  # a refused retry was no registration
     return dataclasses.replace(result, message=note if not result.message else f"{result.message}; {note}")
 
 
