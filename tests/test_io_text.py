@@ -476,3 +476,30 @@ def test_a_stray_quote_is_an_error_naming_the_line(tmp_path):
     path = tmp_path / "bad.csv"
     path.write_text("\n".join(rows) + "\n")
     _error(path, "line 13", "non-numeric value")
+
+
+@pytest.mark.parametrize(("header", "order", "columns"), [
+    (",x,y,z", "index", "2, 3 and 4"),
+    ("id,x,y,z", "index", "2, 3 and 4"),
+    ("Intensity X Y Z", "index", "2, 3 and 4"),
+    ("z,y,x", "reversed", "3, 2 and 1"),
+])
+def test_a_header_that_puts_x_y_z_elsewhere_is_refused(tmp_path, header, order, columns):
+    """x y z are read from the first three columns. A header naming them elsewhere — pandas' ``to_csv``
+    with its index first, an ``id`` column, ``z,y,x`` — was read as the wrong cloud without a word (the
+    index as x made a bunny planar; z,y,x a mirror image)."""
+    pts = _points(40)
+    sep = " " if " " in header else ","
+    rows = [sep.join(map(str, [i, *p] if order == "index" else p[::-1])) for i, p in enumerate(pts)]
+    path = tmp_path / "export.csv"
+    path.write_text(header + "\n" + "\n".join(rows) + "\n")
+    msg = _error(path, f"names x, y and z as columns {columns}, but x y z are read from the first three columns")
+    assert msg.endswith("(pandas: to_csv(..., index=False))") == header.startswith(",")
+
+
+def test_a_header_naming_x_y_z_first_or_naming_other_things_is_read(tmp_path):
+    pts = _points(40)
+    for header in ("x,y,z,id", "X,Y,Z", "easting,northing,height", "x,y,z scan of the hall"):
+        path = tmp_path / "ok.csv"
+        path.write_text(header + "\n" + "\n".join(",".join(map(str, [*p, i])) for i, p in enumerate(pts)) + "\n")
+        np.testing.assert_array_equal(read_point_cloud(path).points, pts)

@@ -1,6 +1,7 @@
 """Text clouds: ``.xyz`` / ``.pts`` / ``.txt`` / ``.csv`` (reader and writer).
 
-The first three columns are x y z; leading header lines that are not numbers, a leading point-count
+The first three columns are x y z (a header line that names them as other columns is an error:
+:func:`_check_xyz_first`); leading header lines that are not numbers, a leading point-count
 line (one number on its own) and ``#`` / ``//`` comment lines are skipped. Columns are separated by
 blanks, tabs, commas or semicolons. Exports with decimal commas are read when the separator makes
 them unambiguous (tabs or semicolons: ``1,5;2,25;3`` is x=1.5 y=2.25 z=3); the x y z cells alone
@@ -301,6 +302,29 @@ def _header_names(line: str, table: bytes) -> list[str]:
     return [p.strip() for p in parts if p.strip()]
 
 
+def _check_xyz_first(path: Path, header: str | None, table: bytes, ncols: int) -> None:
+    """Refuse a file whose header line names x, y and z as other columns than the first three (``id,x,y,z``,
+    pandas' ``,x,y,z`` with its index first, ``z,y,x``): x y z are read from the first three columns, and
+    such a file was read as the wrong cloud (a planar one, or a mirror image) without a word. Judged only
+    when the header has one name per column of the first data line."""
+    if not header:
+        return
+    text = header.lstrip("#/").strip()
+    seps = r"[;\t]" if table == _DECIMAL_COMMA else r"[,;\t]"
+    names = [p.strip().lower() for p in (re.split(seps, text) if re.search(seps, text) else text.split())]
+    if len(names) != ncols or not all(names.count(axis) == 1 for axis in "xyz"):
+        return
+    where = [names.index(axis) for axis in "xyz"]
+    if where == [0, 1, 2]:
+        return
+    hint = " (pandas: to_csv(..., index=False))" if names[0] == "" else ""
+    raise PointCloudError(
+        f"{path}: the header line {quote(header.strip(), 60)} names x, y and z as columns "
+        f"{where[0] + 1}, {where[1] + 1} and {where[2] + 1}, but x y z are read from the first three columns; "
+        f"write x y z first{hint}"
+    )
+
+
 def _attribute_names(header: str | None, ncols: int, table: bytes, pts: bool) -> list[str]:
     """The attribute names of columns 4..``ncols``.
 
@@ -381,6 +405,7 @@ def _block_lines(path: Path, block: bytes, lines_before: int,
             state["table"] = table
             state["blank"] = not any(c in s for c in ",;\t")
             state["ncols"] = len(toks)
+            _check_xyz_first(path, state["names_line"], table, len(toks))
             break
     lines = block.translate(state["table"]).decode("latin-1").splitlines()
 
