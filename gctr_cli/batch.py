@@ -49,6 +49,7 @@ from gctr_cli.outcome import ERRORS_COLUMNS, MATRIX_COLUMNS, TRANSFORMS_COLUMNS,
 from gctr_cli.outdir import (
     ALIGNED_DIR,
     CONFIG_FILE,
+    INPUTS_FILE,
     OUTPUT_NAMES,
     REPORT_FILE,
     SNAPSHOTS_DIR,
@@ -56,7 +57,9 @@ from gctr_cli.outdir import (
     Outputs,
     batch_outputs,
     check_case_collisions,
+    pair_inputs,
     prepare_outdir,
+    record_inputs,
 )
 from gctr_cli.pair import RegisterFn, derive_seed, run_pair
 from gctr_cli.summary import BatchSummary, summarize
@@ -252,13 +255,15 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     setting_up = True
     try:
         before = set(os.listdir(outdir))
-        rewritten = (TRANSFORMS_FILE, CONFIG_FILE) if resume else (CONFIG_FILE,)  # what setting up may rewrite
+        # what setting up may rewrite
+        rewritten = (TRANSFORMS_FILE, CONFIG_FILE, INPUTS_FILE) if resume else (CONFIG_FILE,)
         for name in rewritten:
             if (outdir / name).is_file():
                 originals[name] = (outdir / name).read_bytes()
         check_case_collisions(outdir, (p.pair_id for p in pairs))
-        done = prepare_outdir(outdir, config, resume, {p.pair_id for p in pairs},
-                              batch_outputs(outdir, pairs, snapshots, write_aligned))
+        inputs = pair_inputs(pairs)
+        done = prepare_outdir(outdir, config, resume, inputs, batch_outputs(outdir, pairs, snapshots, write_aligned),
+                              aligned_wanted=write_aligned)
         todo = [p for p in pairs if p.pair_id not in done]
         n_resumed = len(pairs) - len(todo)
         # transforms.csv first: it marks the folder as a gctr run's, so that a kill before the first pair
@@ -266,6 +271,7 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
         outputs = Outputs(outdir, write_aligned=write_aligned)
         resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
         atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
+        record_inputs(outdir, inputs)
         if snapshots:
             (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
         if write_aligned:

@@ -38,6 +38,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "CONFIG_FILE",
     "ERRORS_FILE",
+    "INPUTS_FILE",
     "MATRICES_DIR",
     "Outputs",
     "REPORT_FILE",
@@ -46,8 +47,10 @@ __all__ = [
     "TRANSFORMS_FILE",
     "check_same_config",
     "batch_outputs",
+    "pair_inputs",
     "prepare_outdir",
     "read_rows",
+    "record_inputs",
 ]
 
 TRANSFORMS_FILE = "transforms.csv"
@@ -57,9 +60,13 @@ ALIGNED_DIR = "aligned"
 SNAPSHOTS_DIR = "snapshots"
 REPORT_FILE = "report.html"
 CONFIG_FILE = "config.yaml"
+#: the inputs each pair id was run with (source, target, ground truth, as the manifest gave them), so that
+#: ``--resume`` runs a pair again when its manifest entry has changed
+INPUTS_FILE = ".gctr-inputs.csv"
+INPUTS_COLUMNS = ("pair_id", "source", "target", "gt")
 #: every file and folder a batch writes into its output folder
 OUTPUT_NAMES = frozenset({TRANSFORMS_FILE, ERRORS_FILE, MATRICES_DIR, ALIGNED_DIR, SNAPSHOTS_DIR, REPORT_FILE,
-                          CONFIG_FILE})
+                          CONFIG_FILE, INPUTS_FILE})
 
 
 
@@ -257,11 +264,58 @@ def check_case_collisions(outdir: Path, pair_ids: Iterable[str]) -> None:
                          f"{MATRICES_DIR}/{other}.txt; rename one of them (nothing was run)")
 
 
-def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str] | None = None,
-                   written: dict[Path, str] | None = None) -> set[str]:
+Inputs = dict[str, tuple[str, str, str]]  # pair_id -> (source, target, ground truth or "")
+
+
+def pair_inputs(pairs: Iterable[Any]) -> Inputs:
+    """The inputs of each pair of a manifest, as :data:`INPUTS_FILE` records them."""
+    return {p.pair_id: (str(p.source), str(p.target), "" if p.gt is None else str(p.gt)) for p in pairs}
+
+
+def record_inputs(outdir: Path, inputs: Inputs) -> None:
+    """Record ``inputs`` in :data:`INPUTS_FILE` (atomically), keeping the entries of other pair ids (an
+    earlier run with another manifest)."""
+    path = outdir / INPUTS_FILE
+    recorded = {r["pair_id"]: r for r in read_rows(path, INPUTS_COLUMNS)} if path.exists() else {}
+    recorded |= {pid: dict(zip(INPUTS_COLUMNS, (pid, *entry), strict=True)) for pid, entry in inputs.items()}
+    atomic_write(path, csv_line(INPUTS_COLUMNS) + "".join(csv_line(r[c] for c in INPUTS_COLUMNS)
+                                                          for r in recorded.values()))
+
+
+def _changed_inputs(outdir: Path, rows: list[dict[str, str]], inputs: Inputs, aligned_wanted: bool) -> dict[str, str]:
+    """The pairs of ``inputs`` with a row among ``rows`` that must run again, each with the reason: their
+    source, target or ground truth is not what the earlier run had (by :data:`INPUTS_FILE`; a folder
+    written before it existed tells only the source and target, and, for an ``ok`` pair, whether it had
+    ground truth), or the run now writes aligned clouds (``aligned_wanted``) and an ``ok`` pair has none."""
+    path = outdir / INPUTS_FILE
+    recorded = {r["pair_id"]: r for r in read_rows(path, INPUTS_COLUMNS)} if path.exists() else {}
+    with_errors = {r["pair_id"] for r in read_rows(outdir / ERRORS_FILE, ERRORS_COLUMNS)}
+    changed: dict[str, str] = {}
+    for row in rows:
+        pid = row["pair_id"]
+        if pid not in inputs:
+            continue
+        source, target, gt = inputs[pid]
+        before = recorded.get(pid, {"source": row["source"], "target": row["target"]})
+        why = [f"{what} {before[what]} -> {now}" for what, now in (("source", source), ("target", target))
+               if before[what] != now]
+        if "gt" in before and before["gt"] != gt:
+            why.append(f"ground truth {before['gt'] or 'none'} -> {gt or 'none'}")
+        elif "gt" not in before and row["status"] == "ok" and (pid in with_errors) != bool(gt):
+            why.append("ground truth added" if gt else "ground truth removed")
+        if not why and aligned_wanted and row["status"] == "ok" and not aligned_path(outdir, pid, source).exists():
+            why.append("no aligned cloud yet (--write-aligned)")
+        if why:
+            changed[pid] = "; ".join(why)
+    return changed
+
+
+def prepare_outdir(outdir: Path, config: Config, resume: bool, inputs: Inputs | None = None,
+                   written: dict[Path, str] | None = None, aligned_wanted: bool = False) -> set[str]:
     """Make the folder consistent for appending; return the pair ids already committed. On ``resume``
-    the rows of pairs whose outputs could not be written are dropped, so that they run again (only of
-    pairs in ``pair_ids``, the batch's, when given: another manifest's rows stay).
+    the rows of pairs whose outputs could not be written are dropped, so that they run again, and so
+    are those whose inputs changed since (:func:`_changed_inputs`; only of pairs in ``inputs``, the
+    batch's, when given: another manifest's rows stay).
 
     ``written`` (:func:`batch_outputs`): in a folder without ``transforms.csv`` (no gctr run started there)
     a file at one of these paths is someone else's, and :class:`BatchError` is raised rather than
@@ -289,8 +343,8 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str
             raise BatchError(
                 f"{transforms} already exists: pass --resume to finish that run, or choose another output folder"
             )
-        # nothing was committed: any tm_errors rows are leftovers
-        for path in (transforms, errors):
+        # nothing was committed: any tm_errors rows or recorded inputs are leftovers
+        for path in (transforms, errors, outdir / INPUTS_FILE):
             if path.exists():
                 path.unlink()
         return set()
@@ -302,12 +356,19 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, pair_ids: set[str
 
     def unwritten(row: dict[str, str]) -> bool:  # the folder's fault (a full disk, ...), not the pair's
         return (row["status"] == "failed" and row["message"].startswith(OUTPUT_FAILURE)
-                and (pair_ids is None or row["pair_id"] in pair_ids))
+                and (inputs is None or row["pair_id"] in inputs))
 
     kept_rows = [r for r in rows if not unwritten(r)]
     if len(kept_rows) < len(rows):  # run them again
         logger.info("%s: running again %d pairs whose outputs could not be written", transforms,
                     len(rows) - len(kept_rows))
+    changed = _changed_inputs(outdir, kept_rows, inputs, aligned_wanted) if inputs else {}
+    if changed:
+        shown = "; ".join(f"{pid} ({why})" for pid, why in list(changed.items())[:5])
+        more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
+        logger.warning("resuming: %d pair(s) done by the earlier run run again: %s%s", len(changed), shown, more)
+        kept_rows = [r for r in kept_rows if r["pair_id"] not in changed]
+    if len(kept_rows) < len(rows):
         rows = kept_rows
         atomic_write(transforms, csv_line(TRANSFORMS_COLUMNS)
                      + "".join(csv_line(r[c] for c in TRANSFORMS_COLUMNS) for r in rows))
@@ -396,6 +457,12 @@ class Outputs:
         matrix = self.outdir / MATRICES_DIR / f"{outcome.pair_id}.txt"
         aligned = aligned_path(self.outdir, outcome.pair_id, outcome.source) if self.write_aligned else None
         errors_size = self.errors.size()
+        if outcome.transform is None:
+            # a failed row never stands beside a matrix or aligned cloud of its pair id (left by an earlier
+            # run of a pair that --resume runs again because its inputs changed)
+            for stale in (matrix, aligned_path(self.outdir, outcome.pair_id, outcome.source)):
+                if stale.is_file():
+                    stale.unlink()
         try:
             if outcome.transform is not None:
                 from gctr_cli.io import write_matrix

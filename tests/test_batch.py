@@ -580,3 +580,79 @@ def test_write_aligned_failure_fails_only_that_pair(four_pairs, fast_config, tmp
     assert not (out / "matrices" / "pcd_xyz.txt").exists()
     assert all(rows[p]["status"] == "ok" for p in rows if p != "pcd_xyz")
     assert (out / "aligned" / "ply_ply.ply").is_file()
+
+
+def test_resume_runs_again_the_pairs_whose_inputs_changed(four_pairs, fast_config, tmp_path, caplog):
+    """``--resume`` kept a pair's earlier result when its manifest entry had changed: a corrected ground truth
+    still gave the errors against the old one, ground truth added afterwards gave no errors row (and a
+    failed ``--min-success`` gate), and another target kept the old matrix. Such pairs run again, with a
+    warning naming them and what changed; the others are kept byte for byte."""
+    out = tmp_path / "out"
+    rows = [dict(r) for r in four_pairs.rows]
+    good_gt = rows[0]["gt"]
+    rows[0]["gt"] = rows[1]["gt"]  # ply_ply first run against the wrong ground truth
+    four_pairs.rows = rows
+    run(four_pairs, fast_config, out, workers=1)
+    first = by_id(read_csv(out / "tm_errors.csv")[1])
+    assert float(first["ply_ply"]["rot_err_deg"]) > 1.0  # the wrong ground truth
+    kept = by_id(read_csv(out / "transforms.csv")[1])["xyz_ply"]
+
+    rows[0]["gt"] = good_gt  # corrected
+    rows[2]["target"] = rows[1]["target"]  # xyz_ply now against another target
+    for r in rows:
+        if r["pair_id"] == "no_gt":
+            r["gt"] = rows[3]["gt"]  # ground truth added (another pair's: only the errors row matters here)
+    four_pairs.rows = rows
+    with caplog.at_level("WARNING", logger="gctr_cli.outdir"):
+        summary = run(four_pairs, fast_config, out, workers=1, resume=True)
+    assert (summary.n_run, summary.n_resumed) == (3, 2)
+    warning = next(r.getMessage() for r in caplog.records if "run again" in r.getMessage())
+    assert warning.startswith("resuming: 3 pair(s) done by the earlier run run again: ")
+    assert f"ply_ply (ground truth {four_pairs.root / rows[1]['gt']} -> {four_pairs.root / good_gt})" in warning
+    assert "xyz_ply (target " in warning and "no_gt (ground truth none -> " in warning
+    errors = by_id(read_csv(out / "tm_errors.csv")[1])
+    assert float(errors["ply_ply"]["rot_err_deg"]) < 1e-5 and "no_gt" in errors
+    transforms = read_csv(out / "transforms.csv")[1]
+    assert sorted(r["pair_id"] for r in transforms) == sorted(r["pair_id"] for r in rows)  # each once
+    assert by_id(transforms)["xyz_ply"]["target"] != kept["target"]
+    # nothing changed since: nothing runs
+    assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 0
+
+
+def test_resume_with_aligned_clouds_asked_for_runs_the_ok_pairs_that_have_none(four_pairs, fast_config, tmp_path):
+    """``--write-aligned`` turned on at ``--resume`` wrote aligned clouds only for the pairs still to do."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    summary = run(four_pairs, fast_config, out, workers=1, resume=True, write_aligned=True)
+    assert summary.n_run == len(four_pairs.rows)
+    assert len(list((out / "aligned").iterdir())) == len(four_pairs.rows)
+    assert run(four_pairs, fast_config, out, workers=1, resume=True, write_aligned=True).n_run == 0
+
+
+def test_a_failed_pair_leaves_no_matrix_of_an_earlier_run(four_pairs, fast_config, tmp_path):
+    """A pair run again (its target changed) that fails now must not leave the earlier run's matrix beside
+    its failed row."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    assert (out / "matrices" / "ply_ply.txt").is_file()
+    (four_pairs.root / "empty.ply").write_text("")
+    four_pairs.rows[0]["target"] = "empty.ply"
+    run(four_pairs, fast_config, out, workers=1, resume=True)
+    assert by_id(read_csv(out / "transforms.csv")[1])["ply_ply"]["status"] == "failed"
+    assert not (out / "matrices" / "ply_ply.txt").exists()
+
+
+def test_resume_of_a_folder_without_recorded_inputs_compares_what_transforms_csv_holds(four_pairs, fast_config,
+                                                                                       tmp_path, caplog):
+    """A folder written before gctr recorded each pair's inputs: the source and target of transforms.csv, and
+    for an ok pair whether it has an errors row, are what a changed manifest entry is told by."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    (out / ".gctr-inputs.csv").unlink()
+    for r in four_pairs.rows:
+        if r["pair_id"] == "no_gt":
+            r["gt"] = four_pairs.rows[0]["gt"]
+    with caplog.at_level("WARNING", logger="gctr_cli.outdir"):
+        assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 1
+    assert "no_gt (ground truth added)" in caplog.text
+    assert (out / ".gctr-inputs.csv").is_file()
