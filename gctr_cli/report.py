@@ -185,6 +185,10 @@ _JS = """
 """
 
 
+def _plural(n: int, word: str) -> str:
+    return word if n == 1 else f"{word}s"
+
+
 def _read_csv(path: Path) -> list[dict[str, str]]:
     if not path.exists():
         return []
@@ -370,11 +374,19 @@ def _load_config(outdir: Path) -> Any:
         return None
 
 
-def _summary_from_rows(outdir: Path, rows: Sequence[dict[str, str]], err_ids: set[str]) -> Any:
+def _summary_from_rows(outdir: Path, rows: Sequence[dict[str, str]], err_ids: set[str], run: Any = None) -> Any:
+    """The summary of every row of the folder: a pair has ground truth when it has an errors row or its
+    recorded inputs (``.gctr-inputs.csv``) name one. ``run``: the summary of the run that writes the
+    report, whose time and counts of pairs run are kept."""
+    from gctr_cli.outdir import INPUTS_FILE
     from gctr_cli.summary import summarize
 
-    pairs = [SimpleNamespace(pair_id=r["pair_id"], gt=True if r["pair_id"] in err_ids else None) for r in rows]
-    return summarize(pairs, outdir)
+    with_gt = err_ids | {r["pair_id"] for r in _read_csv(outdir / INPUTS_FILE) if r.get("gt")}
+    pairs = [SimpleNamespace(pair_id=r["pair_id"], gt=True if r["pair_id"] in with_gt else None) for r in rows]
+    if run is None:
+        return summarize(pairs, outdir)
+    return summarize(pairs, outdir, wall_time_s=run.wall_time_s, n_run=run.n_run,
+                     n_resumed=len(rows) - run.n_run)
 
 
 def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None) -> str:
@@ -391,8 +403,10 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     errs = {r["pair_id"]: r for r in _read_csv(outdir / "tm_errors.csv")}
     if config is None:
         config = _load_config(outdir)
-    if summary is None:
-        summary = _summary_from_rows(outdir, rows, set(errs))
+    run = summary
+    if summary is None or summary.n_pairs != len(rows):
+        # the report covers every row of the folder: after --resume with another manifest, more than the run's
+        summary = _summary_from_rows(outdir, rows, set(errs), run)
     thresholds = getattr(config, "success", None)
 
     s = summary
@@ -417,7 +431,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     def card(value: str, key: str, cls: str = "") -> None:
         w(f"<div class=\"card {cls}\"><div class=\"v\">{_e(value)}</div><div class=\"k\">{_e(key)}</div></div>\n")
 
-    card(str(s.n_pairs), "pairs")
+    card(str(s.n_pairs), _plural(s.n_pairs, "pair"))
     card(str(s.n_ok), "ok", "good" if s.n_ok else "")
     card(str(s.n_failed), "failed", "bad" if s.n_failed else "good")
     if s.success_rate is not None:
@@ -429,7 +443,10 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     w("</div>\n<table class=\"kv\">\n")
     kv: list[tuple[str, str]] = []
     if s.n_resumed:
-        kv.append(("resumed", f"{s.n_resumed} pairs were done by an earlier run"))
+        kv.append(("resumed", f"{s.n_resumed} {_plural(s.n_resumed, 'pair')} done by an earlier run"))
+    if run is not None and run.n_pairs != s.n_pairs:
+        kv.append(("this run", f"a manifest of {run.n_pairs} {_plural(run.n_pairs, 'pair')}; the report covers all "
+                               f"{s.n_pairs} rows of transforms.csv, earlier runs' included"))
     if s.median_rot_err_deg is not None:
         kv.append(("median errors",
                    f"rotation {_num(s.median_rot_err_deg)}°, translation {_num(s.median_trans_err)} "

@@ -140,12 +140,32 @@ def test_report_without_ground_truth_and_after_resume(dataset, fast_config, tmp_
     page = parse(text)
     assert sorted(r["data-pair"] for r in page.rows) == ["p0", "p1", "p2", "p3"]  # earlier rows too
     assert "error-plot" not in page.ids and "<svg" not in text
-    assert "2 pairs were done by an earlier run" in text
+    assert "2 pairs done by an earlier run" in text
     # thumbnails link to the snapshots of the pairs that have one (only the resumed run made them)
     thumbs = sorted(u for u in page.urls if u.startswith("snapshots/"))
     assert thumbs == ["snapshots/p2.png"] * 2 + ["snapshots/p3.png"] * 2  # <a href> and <img src>
     assert all((out / u).exists() for u in thumbs)
     assert_self_contained(text, page)
+
+
+def test_report_after_resume_with_a_smaller_manifest_counts_every_row(four_pairs, fast_config, tmp_path):
+    """After ``--resume`` with a manifest of one pair, the cards said "1 pair, 1 ok, 0 failed, 100%" above a
+    table of all the folder's rows, failed ones included: the report covers every row, and says which
+    were this run's."""
+    out = tmp_path / "out"
+    four_pairs.add_raw("broken", "nowhere.ply", four_pairs.rows[0]["target"], four_pairs.rows[0]["gt"])
+    run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    rows = list(four_pairs.rows)
+    four_pairs.rows = rows[:1]
+    summary = run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register,
+                        resume=True)
+    assert (summary.n_pairs, summary.n_failed) == (1, 0)  # stdout's summary: the run's manifest
+    text = (out / "report.html").read_text()
+    assert len(parse(text).rows) == 6
+    assert '<div class="v">6</div><div class="k">pairs</div>' in text
+    assert '<div class="v">1</div><div class="k">failed</div>' in text
+    assert "success (4/5 with ground truth)" in text  # the broken pair had ground truth: no success
+    assert "a manifest of 1 pair; the report covers all 6 rows of transforms.csv" in text
 
 
 def test_cli_prints_the_report_path(four_pairs, tmp_path, monkeypatch):
