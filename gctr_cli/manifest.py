@@ -258,6 +258,12 @@ def _clouds(n: int) -> str:
     return f"{n} cloud" if n == 1 else f"{n} clouds"
 
 
+def _csv_files(folder: Path) -> list[str]:
+    """The visible ``.csv`` files of ``folder``, which folder pairing leaves out (:data:`FOLDER_EXTENSIONS`)."""
+    return sorted(f.name for f in folder.iterdir() if f.suffix.lower() == ".csv" and not f.name.startswith(".")
+                  and (f.is_symlink() or f.is_file()))
+
+
 def _nested_clouds(folder: Path) -> list[str]:
     """The visible subfolders of ``folder`` that hold point cloud files themselves (not searched: a
     manifest pairs a folder's own files)."""
@@ -308,6 +314,17 @@ def build_manifest(
     if nested:
         hint = "; subfolders are not searched: " + "; ".join(nested)
         logger.warning("only the folders' own files pair%s", hint)
+    # .csv files are left out; said where it matters: when nothing pairs, or when one would have paired
+    csv_s, csv_t = _csv_files(sdir), _csv_files(tdir)
+    stems_s, stems_t = {Path(n).stem for n in csv_s}, {Path(n).stem for n in csv_t}
+    would_pair = ((stems_s & (set(tgt) | stems_t)) | (stems_t & (set(src) | stems_s))) - (set(src) & set(tgt))
+    why = "in a folder of scans they are usually tables; name .csv clouds in a manifest"
+    if not (set(src) & set(tgt)) and (csv_s or csv_t):
+        listed = "; ".join(f"{d}: {_listing(names)}" for d, names in ((sdir, csv_s), (tdir, csv_t)) if names)
+        hint += f"; .csv files are left out ({why}): {listed}"
+    elif would_pair:
+        logger.warning("%d stem(s) would pair with .csv files, which are left out (%s): %s", len(would_pair), why,
+                       _listing(sorted(would_pair)))
     unsafe = [s for s in common if pair_id_problem(s)]
     if unsafe:
         logger.warning("skipping %d stem(s) unsafe as pair_id: %s", len(unsafe), _listing(unsafe))

@@ -325,6 +325,26 @@ def test_csv_files_are_not_taken_for_clouds_by_folder_pairing(folders):
     assert [p.pair_id for p in build_manifest(src, tgt, gt)] == ["s01", "s02", "s03"]
 
 
+def test_left_out_csv_files_are_named_where_they_would_have_paired(tmp_path, caplog):
+    src, tgt = tmp_path / "a", tmp_path / "b"
+    src.mkdir()
+    tgt.mkdir()
+    for d in (src, tgt):
+        (d / "r1.csv").write_text("x")
+    with pytest.raises(ManifestError) as ei:
+        build_manifest(src, tgt)
+    assert str(ei.value) == (f"no matching file stems between {src} (0 clouds) and {tgt} (0 clouds); .csv files are "
+                             "left out (in a folder of scans they are usually tables; name .csv clouds in a manifest): "
+                             f"{src}: r1.csv; {tgt}: r1.csv")
+    for d in (src, tgt):
+        (d / "r2.ply").write_text("x")
+    (src / "log.csv").write_text("x")  # pairs with nothing: not worth a warning
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        assert [p.pair_id for p in build_manifest(src, tgt)] == ["r2"]
+    assert caplog.messages == ["1 stem(s) would pair with .csv files, which are left out (in a folder of scans they "
+                               "are usually tables; name .csv clouds in a manifest): r1"]
+
+
 def test_build_ambiguous_stem(folders):
     src, tgt, _ = folders
     (src / "s01.pcd").write_text("x")
