@@ -131,7 +131,8 @@ def _single_threaded_native_libs() -> None:
 
 
 def _fmt_num(x: float | None, spec: str = ".6g") -> str:
-    return "n/a" if x is None else format(x, spec)
+    """``x``; "n/a" when there is none (no answer to measure, or no inliers: NaN)."""
+    return "n/a" if x is None or x != x else format(x, spec)
 
 
 def _fmt_confidence(x: float | None) -> str:
@@ -263,13 +264,13 @@ def main(verbose: int) -> None:
 
 
 @main.command()
-@click.argument("source", type=_Path(dir_okay=False, path_type=Path))
-@click.argument("target", type=_Path(dir_okay=False, path_type=Path))
+@click.argument("source", type=_Path(path_type=Path))
+@click.argument("target", type=_Path(path_type=Path))
 @click.option("-c", "--config", "config_path", type=_Path(dir_okay=False),
               help="YAML config (default: built-in defaults).")
 @click.option("-o", "--output", type=_Path(dir_okay=False, path_type=Path),
               help="Write the 4x4 matrix to this file (missing folders are created).")
-@click.option("--gt", type=_Path(dir_okay=False, path_type=Path),
+@click.option("--gt", type=_Path(path_type=Path),
               help="Ground-truth matrix: also print the errors.")
 @click.option("--seed", type=click.IntRange(min=0), help="Engine seed (default: the config seed). To reproduce a "
               "batch row, pass its seed column.")
@@ -361,7 +362,9 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
     if transform is None:
         for path, what in ((output, "matrix"), (aligned, "aligned cloud")):
             if path is not None:
-                click.echo(f"gctr: no {what} written to {path} (registration failed)", err=True)
+                # a script that ignores the exit code must not mistake an earlier run's file for this one's
+                older = f"; the {path} there is an older file, left as it was" if path.exists() else ""
+                click.echo(f"gctr: no {what} written to {path} (registration failed{older})", err=True)
         sys.exit(EXIT_FAILED)
 
 
@@ -446,8 +449,8 @@ def _check_writable(path: Path | None) -> None:
 
 
 @main.command()
-@click.argument("matrix", type=_Path(dir_okay=False, path_type=Path))
-@click.argument("input", type=_Path(dir_okay=False, path_type=Path))
+@click.argument("matrix", type=_Path(path_type=Path))
+@click.argument("input", type=_Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
               help="Cloud to write: .ply, .pcd, .las, .laz, .xyz, .pts, .txt or .csv (missing folders are created).")
 @verbose_option
@@ -673,9 +676,9 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
 
 
 @main.command()
-@click.argument("source", type=_Path(dir_okay=False, path_type=Path))
-@click.argument("target", type=_Path(dir_okay=False, path_type=Path))
-@click.option("-m", "--matrix", type=_Path(dir_okay=False, path_type=Path),
+@click.argument("source", type=_Path(path_type=Path))
+@click.argument("target", type=_Path(path_type=Path))
+@click.option("-m", "--matrix", type=_Path(path_type=Path),
               help="4x4 source->target matrix (e.g. OUTDIR/matrices/<pair_id>.txt): also show the clouds registered.")
 @click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
               help="PNG file to write (missing folders are created).")

@@ -106,7 +106,7 @@ class PairOutcome:
             *cells,
             fmt_number(self.fitness),
             fmt_optional(self.confidence),
-            fmt_number(self.inlier_rmse),
+            fmt_optional(self.inlier_rmse),  # NaN without inliers
             fmt_number(self.runtime_s),
             str(self.seed),
         ]

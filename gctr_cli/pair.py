@@ -210,9 +210,12 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
         rmse = float(result.inlier_rmse)
         confidence = _confidence(result)
         if result.status != "ok":
+            # the engine refused the input before any answer (planar, too few salient points): nothing measured
+            measured = getattr(result, "refusal", "") != "invalid_input"
             return failed_outcome(
                 spec, seed, _name_files(result.message or "registration failed", spec), "register", runtime,
-                fitness=fitness, inlier_rmse=rmse, confidence=confidence,
+                fitness=fitness if measured else None, inlier_rmse=rmse if measured else None,
+                confidence=confidence if measured else None,
             )
         T = np.array(result.transform, dtype=np.float64)
         ok, reason = is_similarity(T)

@@ -64,6 +64,20 @@ def test_derive_seed_is_stable_and_depends_on_seed_and_pair():
     assert all(0 <= s < 2**31 for s in seeds)
 
 
+def test_a_pair_refused_before_any_answer_has_no_fitness_confidence_or_rmse(dataset, fast_config):
+    """A planar source is refused by the engine before it has an answer: its row had fitness 0.0,
+    confidence 0.0 and inlier_rmse nan, values never measured; the cells are empty."""
+    dataset.add_pair("planar")
+    spec = dataset.specs()[0]
+    xy = np.random.default_rng(0).uniform(size=(500, 2))
+    write_cloud(spec.source, np.column_stack([xy, np.zeros(500)]))
+    out = run_pair(spec, fast_config)
+    assert out.status == "failed" and "planar" in out.message
+    assert (out.fitness, out.confidence, out.inlier_rmse) == (None, None, None)
+    row = dict(zip(TRANSFORMS_COLUMNS, out.transforms_row, strict=True))
+    assert row["fitness"] == row["confidence"] == row["inlier_rmse"] == ""
+
+
 def test_run_pair_in_process_recovers_gt(four_pairs, fast_config):
     specs = {s.pair_id: s for s in four_pairs.specs()}
     out = run_pair(specs["pcd_xyz"], fast_config, fake_engine.register)

@@ -304,6 +304,26 @@ def test_register_exit_codes(runner, fake_register, dataset, tmp_path):
     assert res.exit_code == 2 and "engine.nope: unknown key" in res.stderr
 
 
+def test_register_failures_say_what_is_there(runner, fake_register, dataset, tmp_path):
+    """A folder named as an input gets the batch's message (click said "Invalid value for 'TARGET': File …
+    is a directory"); a failed pair whose -o file exists from before says that the file is an older one."""
+    dataset.add_pair("fails", n=fake_engine.FAIL_N)
+    row = dataset.rows[0]
+    src, tgt = dataset.root / row["source"], dataset.root / row["target"]
+    (tmp_path / "dir.ply").mkdir()
+    for args, what in (((src, tmp_path / "dir.ply"), ""), ((tmp_path / "dir.ply", tgt), ""),
+                       ((src, tgt, "--gt", tmp_path / "dir.ply"), "ground truth "),
+                       (("apply", tmp_path / "dir.ply", src, "-o", tmp_path / "x.ply"), "matrix ")):
+        res = invoke(runner, *(args if args[0] == "apply" else ("register", *args)))
+        expected = f"gctr: error: {what}{tmp_path}/dir.ply: is a folder, not a regular file\n"
+        assert res.exit_code == 2 and res.stderr == expected
+    (tmp_path / "m.txt").write_text("an earlier matrix\n")
+    res = invoke(runner, "register", src, tgt, "-o", tmp_path / "m.txt")
+    assert res.exit_code == 1 and (tmp_path / "m.txt").read_text() == "an earlier matrix\n"
+    assert (f"gctr: no matrix written to {tmp_path}/m.txt (registration failed; the {tmp_path}/m.txt there is an "
+            "older file, left as it was)") in res.stderr
+
+
 def test_outputs_that_cannot_be_written_are_refused_before_any_work(runner, fake_register, four_pairs, tmp_path,
                                                                      monkeypatch):
     import gctr_cli.engine

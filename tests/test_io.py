@@ -837,7 +837,7 @@ def test_too_few_points(tmp_path, n, ext):
         assert_error(ei, path, "no")
         assert "points" in str(ei.value)
     else:
-        assert_error(ei, path, f"only {n} finite points", "at least 10")
+        assert_error(ei, path, f"only {n} finite point{'' if n == 1 else 's'}", "at least 10")
 
 
 def test_one_far_stray_point_does_not_make_a_cloud_degenerate(tmp_path, cloud):

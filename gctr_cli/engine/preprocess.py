@@ -81,7 +81,8 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
     if not finite.all():
         pts = pts[finite]
     if len(pts) < min_points:
-        raise DegenerateCloudError(f"{name}: only {len(pts)} finite points (need at least {min_points})")
+        raise DegenerateCloudError(f"{name}: only {len(pts)} finite point{'' if len(pts) == 1 else 's'} "
+                                  f"(need at least {min_points})")
     problem = coordinate_range_problem(pts)
     if problem:
         raise DegenerateCloudError(f"{name}: {problem}")

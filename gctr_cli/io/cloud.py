@@ -99,7 +99,8 @@ def validate_cloud(cloud: PointCloud, path: Path, min_points: int, degenerate_ok
         raise PointCloudError(f"{path}: contains no points (at least {min_points} required)")
     if n < min_points:
         raise PointCloudError(
-            f"{path}: too few points: only {n} finite points{dropped} (at least {min_points} required)"
+            f"{path}: too few points: only {n} finite point{'' if n == 1 else 's'}{dropped} "
+            f"(at least {min_points} required)"
         )
     if not degenerate_ok:
         _check_shape(pts, path, dropped)
