@@ -366,7 +366,9 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, inputs: Inputs | 
     if changed:
         shown = "; ".join(f"{pid} ({why})" for pid, why in list(changed.items())[:5])
         more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
-        logger.warning("resuming: %d pair(s) done by the earlier run run again: %s%s", len(changed), shown, more)
+        many = len(changed) > 1
+        logger.warning("resuming: %d %s done by the earlier run %s run again: %s%s", len(changed),
+                       "pairs" if many else "pair", "are" if many else "is", shown, more)
         kept_rows = [r for r in kept_rows if r["pair_id"] not in changed]
     if len(kept_rows) < len(rows):
         rows = kept_rows

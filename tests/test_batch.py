@@ -621,7 +621,7 @@ def test_resume_runs_again_the_pairs_whose_inputs_changed(four_pairs, fast_confi
         summary = run(four_pairs, fast_config, out, workers=1, resume=True)
     assert (summary.n_run, summary.n_resumed) == (3, 2)
     warning = next(r.getMessage() for r in caplog.records if "run again" in r.getMessage())
-    assert warning.startswith("resuming: 3 pair(s) done by the earlier run run again: ")
+    assert warning.startswith("resuming: 3 pairs done by the earlier run are run again: ")
     assert f"ply_ply (ground truth {four_pairs.root / rows[1]['gt']} -> {four_pairs.root / good_gt})" in warning
     assert "xyz_ply (target " in warning and "no_gt (ground truth none -> " in warning
     errors = by_id(read_csv(out / "tm_errors.csv")[1])
