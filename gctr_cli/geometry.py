@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "apply", "coordinate_range_problem", "invert", "random_rotation",
-           "robust_core", "split", "to_matrix"]
+__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "apply", "coordinate_range_problem", "cross", "invert",
+           "random_rotation", "robust_core", "split", "to_matrix"]
 
 #: coordinates gctr can register: squared distances and covariances stay finite and nonzero in float64
 MAX_COORDINATE = 1e100
@@ -44,6 +44,19 @@ def split(T: npt.ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
 def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``points`` ``(N, 3)`` moved by the 4x4 transform ``T``: ``p' = A·p + t`` for each row ``p``."""
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of the rows of two ``(N, 3)`` float arrays: ``np.cross(a, b)`` bit for bit (the same
+    products and differences, each rounded once) without its axis handling and copies, which cost it
+    about twice the arithmetic on the engine's arrays."""
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    out = np.empty((len(a), 3), dtype=np.result_type(a, b))
+    out[:, 0] = a1 * b2 - a2 * b1
+    out[:, 1] = a2 * b0 - a0 * b2
+    out[:, 2] = a0 * b1 - a1 * b0
+    return out
 
 
 def invert(T: npt.ArrayLike) -> np.ndarray:

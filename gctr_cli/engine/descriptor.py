@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gctr_cli.geometry import cross
+
 
 def _edges(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, ...]:
     """Edge vectors a->b, b->c, c->a of each triangle (a, b, c) and their lengths."""
@@ -59,7 +61,7 @@ def _tilts(points: np.ndarray, normals: np.ndarray, triangles: np.ndarray, ab: n
     if ab is None or ca is None:
         p = points[triangles]
         ab, ca = p[:, 1] - p[:, 0], p[:, 0] - p[:, 2]
-    n_tri = np.cross(ab, -ca)
+    n_tri = cross(ab, -ca)
     n_tri /= np.maximum(np.linalg.norm(n_tri, axis=1, keepdims=True), 1e-300)
     return np.abs(np.einsum("mvi,mi->mv", normals[triangles], n_tri))
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
-from gctr_cli.geometry import coordinate_range_problem, robust_core
+from gctr_cli.geometry import coordinate_range_problem, cross, robust_core
 
 
 class DegenerateCloudError(ValueError):
@@ -222,7 +222,7 @@ def smallest_eigenpairs(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r0 = np.stack([a00 - lam, a01, a02], axis=1)
     r1 = np.stack([a01, a11 - lam, a12], axis=1)
     r2 = np.stack([a02, a12, a22 - lam], axis=1)
-    crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
+    crosses = np.stack([cross(r0, r1), cross(r0, r2), cross(r1, r2)], axis=1)
     sq = np.einsum("nij,nij->ni", crosses, crosses)
     best = sq.argmax(axis=1)
     rows = np.arange(len(cov))
