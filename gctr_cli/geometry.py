@@ -11,7 +11,7 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = ["MAX_COORDINATE", "MIN_EXTENT", "apply", "coordinate_range_problem", "cross", "invert",
-           "random_rotation", "robust_core", "split", "to_matrix"]
+           "random_rotation", "robust_core", "row_norms", "split", "to_matrix"]
 
 #: coordinates gctr can register: squared distances and covariances stay finite and nonzero in float64
 MAX_COORDINATE = 1e100
@@ -59,6 +59,14 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def row_norms(v: np.ndarray) -> np.ndarray:
+    """Euclidean lengths of the rows of an ``(N, 3)`` float array: ``np.linalg.norm(v, axis=1)`` bit for bit
+    (the same squares summed in the same order, first two first) and about 5x faster (numpy reduces a
+    length-3 axis row by row)."""
+    v0, v1, v2 = v[:, 0], v[:, 1], v[:, 2]
+    return np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+
+
 def invert(T: npt.ArrayLike) -> np.ndarray:
     """The inverse 4x4 transform (``apply(invert(T), apply(T, p)) ≈ p``).
 
@@ -90,7 +98,7 @@ def robust_core(points: np.ndarray, spread: float = 3.0) -> np.ndarray:
     """The points of ``points`` ``(N, 3)`` within ``spread`` times the 90th-percentile distance of the
     coordinate-wise median: the cloud without its far outliers (a stray ``0 0 0`` "no return" in a
     georeferenced export, a corrupt value), for the shape tests that one point must not decide."""
-    d = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    d = row_norms(points - np.median(points, axis=0))
     return points[d <= spread * np.percentile(d, 90)]
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
-from gctr_cli.geometry import coordinate_range_problem, cross, robust_core
+from gctr_cli.geometry import coordinate_range_problem, cross, robust_core, row_norms
 
 
 class DegenerateCloudError(ValueError):
@@ -115,9 +115,9 @@ def robust_centre_and_size(points: np.ndarray) -> tuple[np.ndarray, float]:
     Unlike the bounding-box diagonal this barely moves under rotation, moderate crops and outliers.
     """
     median = np.median(points, axis=0)
-    r0 = np.linalg.norm(points - median, axis=1)
+    r0 = row_norms(points - median)
     centre = points[r0 <= np.percentile(r0, 80)].mean(axis=0)
-    r = np.linalg.norm(points - centre, axis=1)
+    r = row_norms(points - centre)
     size = 2.0 * float(np.percentile(r, 90))
     if size <= 0:
         size = 2.0 * float(r.max())
