@@ -101,7 +101,7 @@ class MirroredTree:
     is the original tree's query for ``x * mirror`` (a reflection keeps every distance, bit for bit: the same
     neighbours at the same distances, barring exact distance ties, which two trees may break differently).
     Only :meth:`query` is offered (all the verdict and the refinement ask of a tree). Building the reflected
-    cloud's own tree cost every accepted pair's reflection check about 3 ms."""
+    cloud's own tree cost every accepted pair's reflection check 1-3 ms."""
 
     def __init__(self, tree: cKDTree, mirror: np.ndarray) -> None:
         self.tree, self.mirror = tree, mirror
