@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "apply", "coordinate_range_problem", "invert", "random_rotation",
-           "robust_core", "split", "to_matrix"]
+__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "apply", "coordinate_range_problem", "cross", "invert",
+           "random_rotation", "robust_core", "row_norms", "split", "to_matrix"]
 
 #: coordinates gctr can register: squared distances and covariances stay finite and nonzero in float64
 MAX_COORDINATE = 1e100
@@ -46,6 +46,27 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of the rows of two ``(N, 3)`` float arrays: ``np.cross(a, b)`` bit for bit (the same
+    products and differences, each rounded once) without its axis handling and copies, which cost it
+    about twice the arithmetic on the engine's arrays."""
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    out = np.empty((len(a), 3), dtype=np.result_type(a, b))
+    out[:, 0] = a1 * b2 - a2 * b1
+    out[:, 1] = a2 * b0 - a0 * b2
+    out[:, 2] = a0 * b1 - a1 * b0
+    return out
+
+
+def row_norms(v: np.ndarray) -> np.ndarray:
+    """Euclidean lengths of the rows of an ``(N, 3)`` float array: ``np.linalg.norm(v, axis=1)`` bit for bit
+    (the same squares summed in the same order, first two first) and about 5x faster (numpy reduces a
+    length-3 axis row by row)."""
+    v0, v1, v2 = v[:, 0], v[:, 1], v[:, 2]
+    return np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+
+
 def invert(T: npt.ArrayLike) -> np.ndarray:
     """The inverse 4x4 transform (``apply(invert(T), apply(T, p)) ≈ p``).
 
@@ -77,7 +98,7 @@ def robust_core(points: np.ndarray, spread: float = 3.0) -> np.ndarray:
     """The points of ``points`` ``(N, 3)`` within ``spread`` times the 90th-percentile distance of the
     coordinate-wise median: the cloud without its far outliers (a stray ``0 0 0`` "no return" in a
     georeferenced export, a corrupt value), for the shape tests that one point must not decide."""
-    d = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    d = row_norms(points - np.median(points, axis=0))
     return points[d <= spread * np.percentile(d, 90)]
 
 

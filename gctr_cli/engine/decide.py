@@ -87,25 +87,37 @@ def tight_test(src_ref: RefinementCloud, tgt_ref: RefinementCloud, scale: float,
                      conflict_weight=v.conflict_weight)
 
 
-def tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, test: TightTest) -> Agreement:
-    """Surface agreement (and conflicts) of ``T`` by the verdict's tight ``test``, on the refinement clouds."""
-    return surface_agreement(T, src_ref.surface, tgt_ref.surface, test.distance, test.angle_deg, test.near,
-                             test.conflict_weight)
+def tight_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, test: TightTest,
+                    known: dict[bytes, Agreement] | None = None) -> Agreement:
+    """Surface agreement (and conflicts) of ``T`` by the verdict's tight ``test``, on the refinement clouds.
+
+    ``known``: the agreements already computed by this test on these clouds, by the transform's bytes (looked
+    up, and filled in): :func:`decide` scores a finalist before its refinement and again as an unrefined
+    rival, and the whole rival pool again when slides join the finalists."""
+    key = T.tobytes() if known is not None else b""
+    if known is not None and key in known:
+        return known[key]
+    agreement = surface_agreement(T, src_ref.surface, tgt_ref.surface, test.distance, test.angle_deg, test.near,
+                                  test.conflict_weight)
+    if known is not None:
+        known[key] = agreement
+    return agreement
 
 
 def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
-            bounds_n: tuple[float, float], timer: StageTimer,
-            test: TightTest) -> tuple[np.ndarray, Agreement]:
+            bounds_n: tuple[float, float], timer: StageTimer, test: TightTest,
+            known: dict[bytes, Agreement] | None = None) -> tuple[np.ndarray, Agreement]:
     """Scaled ICP polish of a coarse transform on the refinement clouds, kept only when its tight surface
     agreement does not drop (ICP can drift the scale on outlier-ridden, partial clouds, and the
-    verdict's objective exposes it). Returns the transform and its tight agreement."""
-    before = tight_agreement(T_n, src_ref, tgt_ref, test)
+    verdict's objective exposes it). Returns the transform and its tight agreement (``known``: as
+    :func:`tight_agreement`)."""
+    before = tight_agreement(T_n, src_ref, tgt_ref, test, known)
     if not cfg.refine.enabled:
         return T_n, before
     t = time.perf_counter()
     T_r = icp(T_n, src_ref, tgt_ref, cfg, bounds_n)
     timer.add("refine", t)
-    after = tight_agreement(T_r, src_ref, tgt_ref, test)
+    after = tight_agreement(T_r, src_ref, tgt_ref, test, known)
     return (T_r, after) if after.score >= before.score else (T_n, before)
 
 
@@ -153,9 +165,11 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             if len(finalists) == v.refined_finalists:
                 break
     test = tight_test(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
-    refined = [_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test) for T in finalists]
+    known: dict[bytes, Agreement] = {}  # tight agreements by transform: each computed once
+    refined = [_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test, known) for T in finalists]
     height_map = functools.cache(lambda: target_heights(tgt_ref, test, cfg))  # built once, if the relief is asked
-    T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test, height_map)
+    T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test, height_map,
+                                        known)
     free = (contact_freedom(T_answer, src_ref, tgt_ref, test.distance)
             if v.slide_steps and (verdict.confidence < 1.0 or v.slide_free_ratio > 0) else None)
     if free is not None and (verdict.confidence < 1.0 or free[1] < v.slide_free_ratio):
@@ -164,12 +178,12 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
         # Those that end at a different alignment (a rival by the shared-data test) join the finalists
         # and the verdict chooses again; those that return to the answer are dropped, so that the
         # slides never just polish the answer's own score.
-        slid = [(T, a) for T, a in (_refine(T_s, src_ref, tgt_ref, cfg, bounds_n, timer, test)
+        slid = [(T, a) for T, a in (_refine(T_s, src_ref, tgt_ref, cfg, bounds_n, timer, test, known)
                                     for T_s in slid_transforms(T_answer, free[0], v.slide_steps))
                 if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
         if slid:
             T_answer, verdict, _ = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test,
-                                           height_map)
+                                           height_map, known)
     return T_answer, verdict
 
 
@@ -261,10 +275,10 @@ def slid_transforms(T: np.ndarray, direction: np.ndarray, steps: tuple[float, ..
 
 def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.ndarray, Agreement]],
             candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
-            cfg: EngineConfig, test: TightTest,
-            height_map: Callable[[], HeightMap | None]) -> tuple[np.ndarray, Verdict, SharedData]:
+            cfg: EngineConfig, test: TightTest, height_map: Callable[[], HeightMap | None],
+            known: dict[bytes, Agreement] | None = None) -> tuple[np.ndarray, Verdict, SharedData]:
     """The best of the ``refined`` finalists by tight score, the verdict on it, and the data it aligns
-    (what a rival must move differently)."""
+    (what a rival must move differently). ``known``: as :func:`tight_agreement`."""
     v = cfg.verdict
     sample = src.surface.sample
     refined = sorted(refined, key=lambda x: -x[1].score)
@@ -280,7 +294,7 @@ def _judged(refined: list[tuple[np.ndarray, Agreement]], pool: list[tuple[np.nda
 
     rivals = [(T, a) for T, a in refined[1:] if rival(T)]
     unrefined = islice((T for T, _ in pool if rival(T)), v.rival_pool)
-    rivals += [(T, tight_agreement(T, src_ref, tgt_ref, test)) for T in unrefined]
+    rivals += [(T, tight_agreement(T, src_ref, tgt_ref, test, known)) for T in unrefined]
     rival_score = max((a.score for _, a in rivals), default=0.0)  # confidence() floors it at 0: "no alignment" scores 0
     support = sum(displacement(T_answer, c.transform, sample) <= v.distinct_ratio for c in candidates)
     conf = confidence(agreement.score, rival_score, v.full_margin)

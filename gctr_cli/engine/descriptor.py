@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from gctr_cli.geometry import cross, row_norms
+
 
 def _edges(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, ...]:
     """Edge vectors a->b, b->c, c->a of each triangle (a, b, c) and their lengths."""
     p = points[triangles]  # (M, 3, 3)
     ab, bc, ca = p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]
-    return ab, bc, ca, np.linalg.norm(ab, axis=1), np.linalg.norm(bc, axis=1), np.linalg.norm(ca, axis=1)
+    return ab, bc, ca, row_norms(ab), row_norms(bc), row_norms(ca)
 
 
 def _cosines(ab: np.ndarray, bc: np.ndarray, ca: np.ndarray, l_ab: np.ndarray, l_bc: np.ndarray,
@@ -59,8 +61,8 @@ def _tilts(points: np.ndarray, normals: np.ndarray, triangles: np.ndarray, ab: n
     if ab is None or ca is None:
         p = points[triangles]
         ab, ca = p[:, 1] - p[:, 0], p[:, 0] - p[:, 2]
-    n_tri = np.cross(ab, -ca)
-    n_tri /= np.maximum(np.linalg.norm(n_tri, axis=1, keepdims=True), 1e-300)
+    n_tri = cross(ab, -ca)
+    n_tri /= np.maximum(row_norms(n_tri), 1e-300)[:, None]
     return np.abs(np.einsum("mvi,mi->mv", normals[triangles], n_tri))
 
 

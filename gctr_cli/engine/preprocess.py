@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
-from gctr_cli.geometry import coordinate_range_problem, robust_core
+from gctr_cli.geometry import coordinate_range_problem, cross, robust_core, row_norms
 
 
 class DegenerateCloudError(ValueError):
@@ -116,9 +116,9 @@ def robust_centre_and_size(points: np.ndarray) -> tuple[np.ndarray, float]:
     Unlike the bounding-box diagonal this barely moves under rotation, moderate crops and outliers.
     """
     median = np.median(points, axis=0)
-    r0 = np.linalg.norm(points - median, axis=1)
+    r0 = row_norms(points - median)
     centre = points[r0 <= np.percentile(r0, 80)].mean(axis=0)
-    r = np.linalg.norm(points - centre, axis=1)
+    r = row_norms(points - centre)
     size = 2.0 * float(np.percentile(r, 90))
     if size <= 0:
         size = 2.0 * float(r.max())
@@ -223,7 +223,7 @@ def smallest_eigenpairs(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r0 = np.stack([a00 - lam, a01, a02], axis=1)
     r1 = np.stack([a01, a11 - lam, a12], axis=1)
     r2 = np.stack([a02, a12, a22 - lam], axis=1)
-    crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
+    crosses = np.stack([cross(r0, r1), cross(r0, r2), cross(r1, r2)], axis=1)
     sq = np.einsum("nij,nij->ni", crosses, crosses)
     best = sq.argmax(axis=1)
     rows = np.arange(len(cov))

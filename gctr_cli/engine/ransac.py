@@ -17,6 +17,7 @@ import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
 from gctr_cli.engine.similarity import batched_umeyama, umeyama
+from gctr_cli.geometry import cross, row_norms
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,7 @@ def ransac_hypotheses(S: np.ndarray, Q: np.ndarray, samples_src: np.ndarray, sam
         distinct = ((si[:, 0] != si[:, 1]) & (si[:, 1] != si[:, 2]) & (si[:, 0] != si[:, 2])
                     & (ti[:, 0] != ti[:, 1]) & (ti[:, 1] != ti[:, 2]) & (ti[:, 0] != ti[:, 2]))
         a, b = S[si], Q[ti]
-        area = np.linalg.norm(np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]), axis=1)
+        area = row_norms(cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]))
         ok = distinct & (area > min_spread ** 2)
         if not ok.any():
             continue

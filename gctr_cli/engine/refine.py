@@ -15,7 +15,7 @@ import numpy as np
 from gctr_cli.engine.scipy_parts import cKDTree
 from gctr_cli.engine.similarity import umeyama
 from gctr_cli.engine.verdict import surface_matches
-from gctr_cli.geometry import apply, to_matrix
+from gctr_cli.geometry import apply, cross, to_matrix
 
 
 @dataclass(frozen=True)
@@ -136,7 +136,7 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
         pc = p - centre
         r = np.einsum("ij,ij->i", p - q, n)
         # d(residual) / d(w, t, log s): [pc x n, n, pc . n]
-        J = np.hstack([np.cross(pc, n), n, np.einsum("ij,ij->i", pc, n)[:, None]])
+        J = np.hstack([cross(pc, n), n, np.einsum("ij,ij->i", pc, n)[:, None]])
         huber = np.maximum(np.abs(r), 1e-12)
         w = weight * np.where(huber < tau / 3, 1.0, (tau / 3) / huber)
         A = J.T @ (J * w[:, None])

@@ -16,6 +16,7 @@ import numpy as np
 
 from gctr_cli.engine.preprocess import voxel_keys
 from gctr_cli.engine.scipy_parts import cKDTree, coo_matrix, dijkstra
+from gctr_cli.geometry import row_norms
 
 
 @dataclass(frozen=True)
@@ -27,12 +28,16 @@ class Supervoxels:
 
 
 def _group_argmin(groups: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each distinct group, the index of its element with the smallest value."""
-    order = np.lexsort((values, groups))
-    g_sorted = groups[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = g_sorted[1:] != g_sorted[:-1]
-    return g_sorted[first], order[first]
+    """For each distinct group (ascending), the index of its element with the smallest value, the first
+    such element on ties (as a stable sort by group, then value, would give: about 3x faster). ``values``
+    must be finite (NaN is never a group's minimum here)."""
+    keys, dense = np.unique(groups, return_inverse=True)
+    smallest = np.full(len(keys), np.inf)
+    np.minimum.at(smallest, dense, values)
+    at_min = np.flatnonzero(values == smallest[dense])
+    first = np.full(len(keys), len(values))
+    np.minimum.at(first, dense[at_min], at_min)
+    return keys, first
 
 
 #: voxels closer than this many voxel sizes are adjacent (the 26-neighbourhood: the cube's diagonal is sqrt(3))
@@ -63,7 +68,7 @@ def _adjacency(voxels: np.ndarray, normals: np.ndarray, voxel: float, seed_spaci
         i, j = (pairs[:, 0], pairs[:, 1]) if len(pairs) else (np.empty(0, np.int64), np.empty(0, np.int64))
     if len(i) == 0:
         return coo_matrix((len(voxels), len(voxels)))
-    step = np.linalg.norm(voxels[i] - voxels[j], axis=1) / seed_spacing
+    step = row_norms(voxels[i] - voxels[j]) / seed_spacing
     bend = 1.0 - np.abs(np.einsum("ij,ij->i", normals[i], normals[j]))
     w = spatial_weight * step + normal_weight * bend + 1e-9
     return coo_matrix((w, (i, j)), shape=(len(voxels), len(voxels)))
@@ -102,7 +107,7 @@ def _initial_seeds(voxels: np.ndarray, seed_spacing: float, eligible_mask: np.nd
         return eligible
     pts = voxels[eligible]
     cells = np.floor(pts / seed_spacing).astype(np.int64)
-    dist = np.linalg.norm(pts - (cells + 0.5) * seed_spacing, axis=1)
+    dist = row_norms(pts - (cells + 0.5) * seed_spacing)
     _, seeds = _group_argmin(voxel_keys(pts, seed_spacing), dist)
     return eligible[seeds]
 
@@ -145,7 +150,7 @@ def supervoxels(points: np.ndarray, normals: np.ndarray, voxel: float, seed_spac
                           for d in range(3)], 1)
         means /= np.maximum(cnt, 1)[:, None]
         members = np.flatnonzero(reached)
-        d_to_mean = np.linalg.norm(points[members] - means[lab], axis=1)
+        d_to_mean = row_norms(points[members] - means[lab])
         groups, best = _group_argmin(lab, d_to_mean)
         seeds = members[best[cnt[groups] >= min_voxels]]
     valid = labels >= 0

@@ -18,13 +18,44 @@ _ENUMERATE_FACTOR = 2.0
 
 def _canonical(tri: np.ndarray, sq: np.ndarray, max_cos: float) -> np.ndarray:
     """The triangles (index triples) with no inner angle below the limit, vertices in canonical order
-    (ascending cosine: largest angle first)."""
+    (ascending cosine: largest angle first; equal cosines in the given vertex order)."""
     i, j, k = tri[:, 0], tri[:, 1], tri[:, 2]
     a2, b2, c2 = sq[j, k], sq[k, i], sq[i, j]  # squared edges opposite vertices i, j, k
-    cos = np.stack([(b2 + c2 - a2) / (2 * np.sqrt(b2 * c2)), (a2 + c2 - b2) / (2 * np.sqrt(a2 * c2)),
-                    (a2 + b2 - c2) / (2 * np.sqrt(a2 * b2))], axis=1)
-    ok = np.all(cos <= max_cos, axis=1)
-    return np.take_along_axis(tri[ok], np.argsort(cos[ok], axis=1, kind="stable"), axis=1)
+    c0, c1, c2 = ((b2 + c2 - a2) / (2 * np.sqrt(b2 * c2)), (a2 + c2 - b2) / (2 * np.sqrt(a2 * c2)),
+                  (a2 + b2 - c2) / (2 * np.sqrt(a2 * b2)))
+    ok = (c0 <= max_cos) & (c1 <= max_cos) & (c2 <= max_cos)  # NaN (a repeated vertex) fails
+    tri, c0, c1, c2 = tri[ok], c0[ok], c1[ok], c2[ok]
+    # A stable argsort of the three columns by comparisons (np.argsort along a length-3 axis sorts every
+    # row separately, several times slower): each vertex's place is the number of vertices before it.
+    place0 = (c1 < c0).astype(np.int64) + (c2 < c0)
+    place1 = (c0 <= c1).astype(np.int64) + (c2 < c1)
+    v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
+    return np.stack([np.where(place0 == p, v0, np.where(place1 == p, v1, v2)) for p in range(3)], axis=1)
+
+
+def _sorted_rows(tri: np.ndarray) -> np.ndarray:
+    """Each row of the (M, 3) integer array sorted ascending (``np.sort(tri, axis=1)``, by a sorting network)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    mid = np.maximum(lo, c)
+    return np.stack([np.minimum(lo, c), np.minimum(hi, mid), np.maximum(hi, mid)], axis=1)
+
+
+def _first_draws(key: np.ndarray) -> np.ndarray:
+    """Ascending indices of the first occurrence of each distinct value of the non-negative integer ``key``
+    (``np.sort(np.unique(key, return_index=True)[1])``): one plain sort of ``key * len + index`` (distinct
+    values) instead of a stable sort of the keys."""
+    n = len(key)
+    if n == 0:
+        return np.empty(0, dtype=np.int64)
+    if int(key.max()) >= np.iinfo(np.int64).max // n:  # the packed values would overflow
+        return np.sort(np.unique(key, return_index=True)[1])
+    packed = np.sort(key.astype(np.int64) * n + np.arange(n))
+    sorted_key = packed // n
+    head = np.empty(n, dtype=bool)
+    head[0] = True
+    head[1:] = sorted_key[1:] != sorted_key[:-1]
+    return np.sort(packed[head] % n)
 
 
 def _enumerate_triangles(near: np.ndarray, sq: np.ndarray, max_cos: float) -> np.ndarray:
@@ -86,10 +117,9 @@ def sample_triangles(points: np.ndarray, n: int, min_edge: float, rng: np.random
         a2 = sq[j, k]
         ok = (a2 >= min_sq) & (a2 <= max_sq) & (a2 > 0)  # i-j and i-k are admissible by construction
         tri = _canonical(np.stack([i[ok], j[ok], k[ok]], axis=1), sq, max_cos)
-        srt = np.sort(tri, axis=1).astype(np.int64)
+        srt = _sorted_rows(tri).astype(np.int64)
         key = (srt[:, 0] * m + srt[:, 1]) * m + srt[:, 2]
-        _, first = np.unique(key, return_index=True)
-        first = np.sort(first)  # first draw of each vertex set within this round, in draw order
+        first = _first_draws(key)  # first draw of each vertex set within this round, in draw order
         tri, key = tri[first], key[first]
         if seen is not None:
             new = ~seen[key]
