@@ -590,7 +590,7 @@ def test_a_reflected_refinement_cloud_queries_the_original_tree_through_the_mirr
     points."""
     from dataclasses import replace
 
-    from gctr_cli.engine.decide import MIRROR, icp, principal_planes, similarity_scale, tight_agreement, tight_test
+    from gctr_cli.engine.decide import MIRROR, icp, reflection_starts, similarity_scale, tight_agreement, tight_test
     from gctr_cli.engine.gctr import _normalised, _prepared_pair
     from gctr_cli.engine.prepare import MirroredTree, RefinementCloud, StageTimer
     from gctr_cli.engine.scipy_parts import cKDTree
@@ -616,14 +616,9 @@ def test_a_reflected_refinement_cloud_queries_the_original_tree_through_the_mirr
         np.testing.assert_array_equal(j, j_built)
     # the reflection check's starts: the answer reflected through the clouds' principal planes, which are
     # proper similarities of the mirrored source (the bunny is nearly mirror-symmetric: some fit well)
-    T_n, flip = _normalised(T_gt, ns, nt), np.diag([*MIRROR, 1.0])
+    T_n = _normalised(T_gt, ns, nt)
     test = tight_test(mirrored, tgt_ref, similarity_scale(T_n), cfg)
-    starts = []
-    for normal, centre in principal_planes(apply(T_n, src_ref.points)) + principal_planes(tgt_ref.points):
-        plane = np.eye(4)
-        plane[:3, :3] -= 2.0 * np.outer(normal, normal)
-        plane[:3, 3] = 2.0 * float(centre @ normal) * normal
-        starts.append(plane @ T_n @ flip)
+    starts = reflection_starts(T_n, src_ref, tgt_ref)
     scores = []
     for T in starts:
         tight = tight_agreement(T, mirrored, tgt_ref, test)

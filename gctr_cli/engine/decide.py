@@ -209,13 +209,7 @@ def reflected_fit(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCl
     test = tight_test(src_ref, tgt_ref, similarity_scale(T), cfg)
     answer = tight_agreement(T, src_ref, tgt_ref, test).score
     mirrored = src_ref.reflected(MIRROR, cfg)
-    flip = np.diag([*MIRROR, 1.0])
-    starts = []
-    for normal, centre in principal_planes(apply(T, src_ref.points)) + principal_planes(tgt_ref.points):
-        plane = np.eye(4)
-        plane[:3, :3] -= 2.0 * np.outer(normal, normal)
-        plane[:3, 3] = 2.0 * float(centre @ normal) * normal
-        starts.append(plane @ T @ flip)
+    starts = reflection_starts(T, src_ref, tgt_ref)
     # Only the likeliest start is refined (ICP is the cost), ranked as the search ranks, at the inlier
     # distance; and only when it agrees with the target nearly as well as the answer does there.
     def coarse(S: np.ndarray, cloud: RefinementCloud) -> float:
@@ -239,6 +233,19 @@ REFLECTION_ICP_ITERATIONS = 8
 #: the tuning set's easy, cross, real, sfm, hard and part levels (it costs a mirror image nothing and a right
 #: answer the refinement's time)
 REFLECTION_START_RATIO = 0.4
+
+
+def reflection_starts(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud) -> list[np.ndarray]:
+    """``T`` reflected through the three principal planes of the moved source and the three of the target,
+    each as a proper similarity of the source mirrored by :data:`MIRROR` (the starts of :func:`reflected_fit`)."""
+    flip = np.diag([*MIRROR, 1.0])
+    starts = []
+    for normal, centre in principal_planes(apply(T, src_ref.points)) + principal_planes(tgt_ref.points):
+        plane = np.eye(4)
+        plane[:3, :3] -= 2.0 * np.outer(normal, normal)
+        plane[:3, 3] = 2.0 * float(centre @ normal) * normal
+        starts.append(plane @ T @ flip)
+    return starts
 
 
 def principal_planes(points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
