@@ -582,7 +582,7 @@ def test_las_writer_stretches_unit_float_intensity_and_never_wraps(tmp_path, cap
         "whole numbers 0..255); not written",
         f"{out}: attribute 'point_source_id' holds a value LAS dimension 'point_source_id' cannot "
         "(18446744073709551615; it holds whole numbers 0..65535); not written",
-        f"{out}: attribute 'label' not written (LAS extra bytes hold numbers under a name like an identifier)"])
+        f"{out}: attributes not written (not numeric): label"])  # said for every format (write_point_cloud)
 
 
 @pytest.mark.parametrize("ext", [".xyz", ".pts", ".txt"])
@@ -879,3 +879,18 @@ def test_the_reread_filter_keeps_other_threads_warnings(caplog):
     log.warning("after: kept")
     assert [r.getMessage() for r in caplog.records] == ["another thread: kept", "this thread: an error is kept",
                                                         "after: kept"]
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".csv", ".las"])
+def test_text_attributes_are_named_in_a_warning_not_dropped_silently(tmp_path, caplog, ext):
+    """No format holds text per point; an API user's ``label`` column was left out of every output but LAS
+    without a word."""
+    pts = np.random.default_rng(1).uniform(size=(20, 3))
+    cloud = PointCloud(pts, {"label": np.array([f"p{i}" for i in range(20)]), "intensity": np.arange(20.0)})
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(tmp_path / f"out{ext}", cloud)
+    assert [r.getMessage() for r in caplog.records] == [f"{tmp_path / f'out{ext}'}: attributes not written (not "
+                                                         "numeric): label"]
+    back = read_point_cloud(tmp_path / f"out{ext}")
+    np.testing.assert_allclose(back.points, pts, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(back.attributes["intensity"], dtype=float), np.arange(20.0))

@@ -38,6 +38,7 @@ dropped with a warning; too few points, all-identical points and collinear point
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import threading
@@ -164,6 +165,10 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise PointCloudError(f"{path}: points must have shape (N, 3), got {pts.shape}")
         cloud = PointCloud(pts)
+    text = [str(k) for k, v in cloud.attributes.items() if np.asarray(v).dtype.kind not in "fiub"]
+    if text:  # no format takes text or objects per point: said once, not skipped without a word
+        logger.warning("%s: attributes not written (not numeric): %s", clean(path), clean(", ".join(text)))
+        cloud = dataclasses.replace(cloud, attributes={k: v for k, v in cloud.attributes.items() if str(k) not in text})
     if fmt.name not in ("LAS", "LAZ") and cloud.source_format == "las" and "las_header" in cloud.meta:
         from gctr_cli.io.las import crs_description
 
