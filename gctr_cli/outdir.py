@@ -282,14 +282,15 @@ def record_inputs(outdir: Path, inputs: Inputs) -> None:
                                                           for r in recorded.values()))
 
 
-def _changed_inputs(outdir: Path, rows: list[dict[str, str]], inputs: Inputs, aligned_wanted: bool) -> dict[str, str]:
+def _changed_inputs(outdir: Path, rows: list[dict[str, str]], with_errors: set[str], inputs: Inputs,
+                    aligned_wanted: bool) -> dict[str, str]:
     """The pairs of ``inputs`` with a row among ``rows`` that must run again, each with the reason: their
     source, target or ground truth is not what the earlier run had (by :data:`INPUTS_FILE`; a folder
     written before it existed tells only the source and target, and, for an ``ok`` pair, whether it had
-    ground truth), or the run now writes aligned clouds (``aligned_wanted``) and an ``ok`` pair has none."""
+    ground truth: ``with_errors``, the pairs with a ``tm_errors.csv`` row), or the run now writes aligned
+    clouds (``aligned_wanted``) and an ``ok`` pair has none."""
     path = outdir / INPUTS_FILE
     recorded = {r["pair_id"]: r for r in read_rows(path, INPUTS_COLUMNS)} if path.exists() else {}
-    with_errors = {r["pair_id"] for r in read_rows(outdir / ERRORS_FILE, ERRORS_COLUMNS)}
     changed: dict[str, str] = {}
     for row in rows:
         pid = row["pair_id"]
@@ -362,7 +363,9 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, inputs: Inputs | 
     if len(kept_rows) < len(rows):  # run them again
         logger.info("%s: running again %d pairs whose outputs could not be written", transforms,
                     len(rows) - len(kept_rows))
-    changed = _changed_inputs(outdir, kept_rows, inputs, aligned_wanted) if inputs else {}
+    err_rows = read_rows(errors, ERRORS_COLUMNS)
+    changed = (_changed_inputs(outdir, kept_rows, {r["pair_id"] for r in err_rows}, inputs, aligned_wanted)
+               if inputs else {})
     if changed:
         shown = "; ".join(f"{pid} ({why})" for pid, why in list(changed.items())[:5])
         more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
@@ -376,7 +379,6 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, inputs: Inputs | 
                      + "".join(csv_line(r[c] for c in TRANSFORMS_COLUMNS) for r in rows))
     done = {r["pair_id"] for r in rows}
     # keep exactly one error row per committed pair (drop rows of pairs killed before their commit)
-    err_rows = read_rows(errors, ERRORS_COLUMNS)
     kept: dict[str, dict[str, str]] = {}
     for r in err_rows:
         if r["pair_id"] in done:
@@ -457,12 +459,13 @@ class Outputs:
         transforms_row = outcome.transforms_row  # formatted first: a bad value fails before any write
         errors_row = outcome.errors_row
         matrix = self.outdir / MATRICES_DIR / f"{outcome.pair_id}.txt"
-        aligned = aligned_path(self.outdir, outcome.pair_id, outcome.source) if self.write_aligned else None
+        aligned_file = aligned_path(self.outdir, outcome.pair_id, outcome.source)
+        aligned = aligned_file if self.write_aligned else None
         errors_size = self.errors.size()
         if outcome.transform is None:
             # a failed row never stands beside a matrix or aligned cloud of its pair id (left by an earlier
             # run of a pair that --resume runs again because its inputs changed)
-            for stale in (matrix, aligned_path(self.outdir, outcome.pair_id, outcome.source)):
+            for stale in (matrix, aligned_file):
                 if stale.is_file():
                     stale.unlink()
         try:

@@ -292,14 +292,15 @@ def _decimal_commas_between_blanks(line: str) -> bool:
     return any(_DEC_COMMA_TOKEN.match(t) for t in line.split(None, 3)[:3])
 
 
-def _header_names(line: str, table: bytes) -> list[str]:
+def _header_names(line: str, table: bytes, keep_empty: bool = False) -> list[str]:
     """The names of a header or comment line (``X Y Z R G B``, ``//X,Y,Z,R,G,B,Scalar field``,
     ``# x y z intensity``), split at the separators of the data (``;`` or tabs for decimal commas; else
-    commas, semicolons or tabs when the line has any, blanks otherwise: ``Scalar field`` is one name)."""
+    commas, semicolons or tabs when the line has any, blanks otherwise: ``Scalar field`` is one name).
+    With ``keep_empty``, an empty cell stays as ``""`` (pandas' ``,x,y,z``: one name per column)."""
     text = line.lstrip("#/").strip()
     seps = r"[;\t]" if table == _DECIMAL_COMMA else r"[,;\t]"
     parts = re.split(seps, text) if re.search(seps, text) else text.split()
-    return [p.strip() for p in parts if p.strip()]
+    return [p.strip() for p in parts if keep_empty or p.strip()]
 
 
 def _check_xyz_first(path: Path, header: str | None, table: bytes, ncols: int) -> None:
@@ -309,9 +310,7 @@ def _check_xyz_first(path: Path, header: str | None, table: bytes, ncols: int) -
     when the header has one name per column of the first data line."""
     if not header:
         return
-    text = header.lstrip("#/").strip()
-    seps = r"[;\t]" if table == _DECIMAL_COMMA else r"[,;\t]"
-    names = [p.strip().lower() for p in (re.split(seps, text) if re.search(seps, text) else text.split())]
+    names = [name.lower() for name in _header_names(header, table, keep_empty=True)]
     if len(names) != ncols or not all(names.count(axis) == 1 for axis in "xyz"):
         return
     where = [names.index(axis) for axis in "xyz"]
