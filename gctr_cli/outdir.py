@@ -47,6 +47,7 @@ __all__ = [
     "TRANSFORMS_FILE",
     "check_same_config",
     "batch_outputs",
+    "file_stamp",
     "pair_inputs",
     "prepare_outdir",
     "read_rows",
@@ -63,7 +64,9 @@ CONFIG_FILE = "config.yaml"
 #: the inputs each pair id was run with (source, target, ground truth, as the manifest gave them), so that
 #: ``--resume`` runs a pair again when its manifest entry has changed
 INPUTS_FILE = ".gctr-inputs.csv"
-INPUTS_COLUMNS = ("pair_id", "source", "target", "gt")
+INPUTS_COLUMNS = ("pair_id", "source", "target", "gt", "source_stamp", "target_stamp", "gt_stamp")
+#: the columns of an inputs file written before the stamps (gctr 0.x of 2026-12-06), still read
+_INPUTS_COLUMNS_WITHOUT_STAMPS = INPUTS_COLUMNS[:4]
 #: every file and folder a batch writes into its output folder
 OUTPUT_NAMES = frozenset({TRANSFORMS_FILE, ERRORS_FILE, MATRICES_DIR, ALIGNED_DIR, SNAPSHOTS_DIR, REPORT_FILE,
                           CONFIG_FILE, INPUTS_FILE})
@@ -264,19 +267,49 @@ def check_case_collisions(outdir: Path, pair_ids: Iterable[str]) -> None:
                          f"{MATRICES_DIR}/{other}.txt; rename one of them (nothing was run)")
 
 
-Inputs = dict[str, tuple[str, str, str]]  # pair_id -> (source, target, ground truth or "")
+Inputs = dict[str, tuple[str, ...]]  # pair_id -> (source, target, ground truth or "", and their stamps)
+_FILE_ROLES = (("source", "source"), ("target", "target"), ("gt", "ground truth"))
+
+
+MISSING_STAMP = "missing"
+
+
+def file_stamp(path: str | Path) -> str:
+    """``size:mtime_ns`` of a file, the test ``make`` and ``rsync`` use for "changed since" (``missing``
+    when it cannot be looked up): a file rewritten in place gets another stamp."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return MISSING_STAMP
+    return f"{st.st_size}:{st.st_mtime_ns}"
 
 
 def pair_inputs(pairs: Iterable[Any]) -> Inputs:
-    """The inputs of each pair of a manifest, as :data:`INPUTS_FILE` records them."""
-    return {p.pair_id: (str(p.source), str(p.target), "" if p.gt is None else str(p.gt)) for p in pairs}
+    """The inputs of each pair of a manifest, as :data:`INPUTS_FILE` records them: the three paths, then
+    the :func:`file_stamp` of each (the ground truth's empty when there is none)."""
+    inputs: Inputs = {}
+    for p in pairs:
+        paths = (str(p.source), str(p.target), "" if p.gt is None else str(p.gt))
+        inputs[p.pair_id] = (*paths, *(file_stamp(path) if path else "" for path in paths))
+    return inputs
+
+
+def _read_inputs(path: Path) -> dict[str, dict[str, str]]:
+    """The rows of :data:`INPUTS_FILE` by pair id; one written before the stamps has them empty."""
+    if not path.exists():
+        return {}
+    try:
+        rows = read_rows(path, INPUTS_COLUMNS)
+    except BatchError:
+        rows = [r | {c: "" for c in INPUTS_COLUMNS[4:]} for r in read_rows(path, _INPUTS_COLUMNS_WITHOUT_STAMPS)]
+    return {r["pair_id"]: r for r in rows}
 
 
 def record_inputs(outdir: Path, inputs: Inputs) -> None:
     """Record ``inputs`` in :data:`INPUTS_FILE` (atomically), keeping the entries of other pair ids (an
     earlier run with another manifest)."""
     path = outdir / INPUTS_FILE
-    recorded = {r["pair_id"]: r for r in read_rows(path, INPUTS_COLUMNS)} if path.exists() else {}
+    recorded = _read_inputs(path)
     recorded |= {pid: dict(zip(INPUTS_COLUMNS, (pid, *entry), strict=True)) for pid, entry in inputs.items()}
     atomic_write(path, csv_line(INPUTS_COLUMNS) + "".join(csv_line(r[c] for c in INPUTS_COLUMNS)
                                                           for r in recorded.values()))
@@ -285,26 +318,32 @@ def record_inputs(outdir: Path, inputs: Inputs) -> None:
 def _changed_inputs(outdir: Path, rows: list[dict[str, str]], with_errors: set[str], inputs: Inputs,
                     aligned_wanted: bool) -> dict[str, str]:
     """The pairs of ``inputs`` with a row among ``rows`` that must run again, each with the reason: their
-    source, target or ground truth is not what the earlier run had (by :data:`INPUTS_FILE`; a folder
-    written before it existed tells only the source and target, and, for an ``ok`` pair, whether it had
-    ground truth: ``with_errors``, the pairs with a ``tm_errors.csv`` row), or the run now writes aligned
-    clouds (``aligned_wanted``) and an ``ok`` pair has none."""
-    path = outdir / INPUTS_FILE
-    recorded = {r["pair_id"]: r for r in read_rows(path, INPUTS_COLUMNS)} if path.exists() else {}
+    source, target or ground truth is another file than the earlier run's, or the same file changed on
+    disk since (another size or modification time; by :data:`INPUTS_FILE`; a folder written before it
+    existed tells only the source and target, and, for an ``ok`` pair, whether it had ground truth:
+    ``with_errors``, the pairs with a ``tm_errors.csv`` row), or the run now writes aligned clouds
+    (``aligned_wanted``) and an ``ok`` pair has none."""
+    recorded = _read_inputs(outdir / INPUTS_FILE)
     changed: dict[str, str] = {}
     for row in rows:
         pid = row["pair_id"]
         if pid not in inputs:
             continue
-        source, target, gt = inputs[pid]
+        now = dict(zip(INPUTS_COLUMNS[1:], inputs[pid], strict=True))
         before = recorded.get(pid, {"source": row["source"], "target": row["target"]})
-        why = [f"{what} {before[what]} -> {now}" for what, now in (("source", source), ("target", target))
-               if before[what] != now]
-        if "gt" in before and before["gt"] != gt:
-            why.append(f"ground truth {before['gt'] or 'none'} -> {gt or 'none'}")
-        elif "gt" not in before and row["status"] == "ok" and (pid in with_errors) != bool(gt):
-            why.append("ground truth added" if gt else "ground truth removed")
-        if not why and aligned_wanted and row["status"] == "ok" and not aligned_path(outdir, pid, source).exists():
+        why = [f"{what} {before[key]} -> {now[key]}" for key, what in _FILE_ROLES[:2] if before[key] != now[key]]
+        if "gt" in before and before["gt"] != now["gt"]:
+            why.append(f"ground truth {before['gt'] or 'none'} -> {now['gt'] or 'none'}")
+        elif "gt" not in before and row["status"] == "ok" and (pid in with_errors) != bool(now["gt"]):
+            why.append("ground truth added" if now["gt"] else "ground truth removed")
+        if not why:
+            # the same paths: has a file changed on disk? Not known without a recorded stamp; a file gone
+            # since keeps the earlier result (a batch that archives its inputs must not lose its rows)
+            why = [f"{what} {now[key]} changed on disk" for key, what in _FILE_ROLES
+                   if now[key] and before.get(f"{key}_stamp") and now[f"{key}_stamp"] != MISSING_STAMP
+                   and before[f"{key}_stamp"] != now[f"{key}_stamp"]]
+        if (not why and aligned_wanted and row["status"] == "ok"
+                and not aligned_path(outdir, pid, now["source"]).exists()):
             why.append("no aligned cloud yet (--write-aligned)")
         if why:
             changed[pid] = "; ".join(why)

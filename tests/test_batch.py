@@ -7,6 +7,7 @@ correspondences), so they check the batch machinery, not the algorithm; they run
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PYTHON, read_csv, row_matrix, write_cloud
+from conftest import PYTHON, random_similarity, read_csv, row_matrix, write_cloud
 
 from data_scripts import fake_engine
 from gctr_cli import batch
@@ -31,7 +32,8 @@ from gctr_cli.batch import (
     run_pair,
 )
 from gctr_cli.config import config_from_dict, load_config
-from gctr_cli.io import load_point_cloud, read_matrix
+from gctr_cli.geometry import apply
+from gctr_cli.io import load_point_cloud, read_matrix, write_matrix
 from gctr_cli.metrics import transform_errors
 
 
@@ -654,6 +656,65 @@ def test_a_failed_pair_leaves_no_matrix_of_an_earlier_run(four_pairs, fast_confi
     run(four_pairs, fast_config, out, workers=1, resume=True)
     assert by_id(read_csv(out / "transforms.csv")[1])["ply_ply"]["status"] == "failed"
     assert not (out / "matrices" / "ply_ply.txt").exists()
+
+
+def test_resume_runs_again_the_pairs_whose_files_changed_in_place(four_pairs, fast_config, tmp_path, caplog):
+    """A cron job that rewrites its clouds at the same paths and resumes into the same folder kept last
+    night's matrices for the new data: ``--resume`` compared only the paths. Each file's size and
+    modification time are recorded, so a target or ground truth rewritten in place runs its pair again,
+    and a file that was broken and has been fixed in place gets its failed pair retried."""
+    out = tmp_path / "out"
+    four_pairs.add_raw("broken", "clouds/broken.ply", four_pairs.rows[0]["target"])
+    (four_pairs.root / "clouds" / "broken.ply").write_text("not a ply file\n")
+    run(four_pairs, fast_config, out, workers=1)
+    assert by_id(read_csv(out / "transforms.csv")[1])["broken"]["status"] == "failed"
+    before = by_id(read_csv(out / "tm_errors.csv")[1])
+
+    # pcd_xyz's target turned 30 degrees and rewritten in place, with its new ground truth
+    rows = by_id(four_pairs.rows)
+    target = four_pairs.root / rows["pcd_xyz"]["target"]
+    gt = four_pairs.root / rows["pcd_xyz"]["gt"]
+    turn = random_similarity(np.random.default_rng(3), max_angle=30.0)
+    write_cloud(target, apply(turn, load_point_cloud(target)))
+    write_matrix(gt, turn @ read_matrix(gt))
+    # xyz_ply's ground truth touched (the same bytes, a later modification time: as make, it counts)
+    xyz_gt = four_pairs.root / rows["xyz_ply"]["gt"]
+    os.utime(xyz_gt, ns=(os.stat(xyz_gt).st_atime_ns, os.stat(xyz_gt).st_mtime_ns + 10**9))
+    # broken.ply fixed in place
+    shutil.copyfile(four_pairs.root / rows["ply_ply"]["source"], four_pairs.root / "clouds" / "broken.ply")
+    # ply_ply's source removed (archived): its earlier row is kept, not turned into a failure
+    (four_pairs.root / rows["ply_ply"]["source"]).rename(tmp_path / "archived.ply")
+
+    with caplog.at_level("WARNING", logger="gctr_cli.outdir"):
+        summary = run(four_pairs, fast_config, out, workers=1, resume=True)
+    assert (summary.n_run, summary.n_resumed) == (3, 3)
+    warning = next(r.getMessage() for r in caplog.records if "run again" in r.getMessage())
+    assert f"pcd_xyz (target {target} changed on disk; ground truth {gt} changed on disk)" in warning
+    assert f"xyz_ply (ground truth {xyz_gt} changed on disk)" in warning
+    assert "broken (source " in warning and "ply_ply" not in warning
+    transforms = by_id(read_csv(out / "transforms.csv")[1])
+    assert transforms["broken"]["status"] == "ok" and transforms["ply_ply"]["status"] == "ok"
+    assert np.allclose(row_matrix(transforms["pcd_xyz"])[:3, :3], (turn @ four_pairs.gt["pcd_xyz"])[:3, :3],
+                       atol=1e-6)
+    after = by_id(read_csv(out / "tm_errors.csv")[1])
+    assert float(after["pcd_xyz"]["rot_err_deg"]) < 1e-3 and after["ply_ply"] == before["ply_ply"]
+    assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 0  # nothing changed since
+
+
+def test_resume_reads_the_inputs_recorded_before_file_stamps(four_pairs, fast_config, tmp_path):
+    """An inputs file written before the stamps (four columns) is still read: paths are compared, files
+    changed in place are not known, and the run records the stamps from then on."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    path = out / ".gctr-inputs.csv"
+    old = [line.split(",")[:4] for line in path.read_text().splitlines()]
+    path.write_text("".join(",".join(cells) + "\n" for cells in old))
+    target = four_pairs.root / four_pairs.rows[0]["target"]
+    os.utime(target, ns=(os.stat(target).st_atime_ns, os.stat(target).st_mtime_ns + 10**9))
+    assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 0
+    assert path.read_text().splitlines()[0].endswith(",source_stamp,target_stamp,gt_stamp")
+    os.utime(target, ns=(os.stat(target).st_atime_ns, os.stat(target).st_mtime_ns + 10**9))
+    assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 1
 
 
 def test_resume_of_a_folder_without_recorded_inputs_compares_what_transforms_csv_holds(four_pairs, fast_config,
