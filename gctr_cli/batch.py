@@ -124,13 +124,22 @@ def check_inputs_not_overwritten(pairs: Sequence[Any], outdir: str | Path, snaps
 
 
 def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> None:
-    """``OUTDIR/report.html``; a problem is logged, never fails the batch."""
+    """``OUTDIR/report.html``; a problem is logged, never fails the batch. A report that cannot be written
+    does not leave an earlier run's in its place: that one is out of date (the rows have changed)."""
     try:
         from gctr_cli.report import write_report
 
         write_report(outdir, summary=summary, config=config)
     except Exception as exc:
-        logger.warning("could not write %s: %s", outdir / REPORT_FILE, exc_message(exc))
+        path = outdir / REPORT_FILE
+        try:
+            path.unlink()
+            removed = "; removed the earlier one, which is out of date"
+        except FileNotFoundError:
+            removed = ""
+        except OSError:
+            removed = "; the earlier one there is out of date"
+        logger.warning("could not write %s: %s%s", path, exc_message(exc), removed)
         logger.debug("report failure", exc_info=True)
 
 
@@ -253,6 +262,8 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     n_run = 0
     outputs: Outputs | None = None
     setting_up = True
+    stopped_with_rows = False
+    n_resumed = 0
     try:
         before = set(os.listdir(outdir))
         # what setting up may rewrite
@@ -290,7 +301,8 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
                 if on_outcome is not None:
                     on_outcome(outcome)
     except BaseException as exc:
-        if outputs is None or not outputs.has_new_rows():
+        stopped_with_rows = outputs is not None and outputs.has_new_rows()
+        if not stopped_with_rows:
             if outputs is not None:
                 try:
                     outputs.close()
@@ -306,6 +318,9 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     finally:
         if outputs is not None:
             outputs.close()
+            if stopped_with_rows:  # stopped (Ctrl-C, SIGTERM, a lost scheduler): the report says so far
+                _write_report(outdir, summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run,
+                                                n_resumed=n_resumed), config)
     summary = summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
     _write_report(outdir, summary, config)
     return summary

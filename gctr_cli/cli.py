@@ -508,13 +508,23 @@ def _has_rows(path: Path) -> bool:
         return False
 
 
+def _miss_text(rot: float, trans: float, scale: float, th: Any) -> str:
+    """What puts an ``ok`` answer outside the success limits ``th``: the errors over their limits."""
+    over = [f"{what} {value:.4g}{unit} (limit {limit:g}{unit})"
+            for what, value, limit, unit in (("rotation", rot, th.rotation_deg, " deg"),
+                                             ("translation", trans, th.translation_rel, " x target diagonal"),
+                                             ("scale error", scale, th.scale, ""))
+            if not value < limit]
+    return ", ".join(over) or "no success"
+
+
 def _print_summary(summary: Any, config: Any) -> None:
     s = summary
     echo = click.echo
+    th = config.success
     resumed = f" ({s.n_resumed} done by an earlier run)" if s.n_resumed else ""
     echo(f"pairs: {s.n_pairs} ({s.n_ok} ok, {s.n_failed} failed){resumed}")
     if s.success_rate is not None:
-        th = config.success
         echo(
             f"success: {s.n_success}/{s.n_gt} pairs with ground truth ({100 * s.success_rate:.1f}%)"
             f"  [rotation < {th.rotation_deg:g} deg, translation < {th.translation_rel:g} x target diagonal,"
@@ -535,6 +545,12 @@ def _print_summary(summary: Any, config: Any) -> None:
             echo(f"  {pid}: {msg}")
         if len(s.failures) > 50:
             echo(f"  ... and {len(s.failures) - 50} more (see transforms.csv)")
+    if s.misses:
+        echo("ok but wrong by their ground truth:")
+        for pid, rot, trans, scale in s.misses[:50]:
+            echo(f"  {pid}: {_miss_text(rot, trans, scale, th)}")
+        if len(s.misses) > 50:
+            echo(f"  ... and {len(s.misses) - 50} more (see tm_errors.csv)")
     extras = "".join(f", {name}/" for name in ("snapshots", "aligned") if (Path(s.outdir) / name).is_dir())
     echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml{extras}")
     if (Path(s.outdir) / "report.html").exists():

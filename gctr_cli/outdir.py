@@ -438,6 +438,13 @@ def aligned_path(outdir: Path, pair_id: str, source: str | Path) -> Path:
     return outdir / ALIGNED_DIR / f"{pair_id}{ext if ext in WRITE_EXTENSIONS else '.ply'}"
 
 
+def aligned_paths(outdir: Path, pair_id: str) -> list[Path]:
+    """Every path :func:`aligned_path` can give ``pair_id``, whatever its source's format."""
+    from gctr_cli.io import WRITE_EXTENSIONS
+
+    return [outdir / ALIGNED_DIR / f"{pair_id}{ext}" for ext in sorted({*WRITE_EXTENSIONS, ".ply"})]
+
+
 def _problem(exc: BaseException) -> str:
     """gctr's own errors name the file and the problem already; others get their type too."""
     return str(exc) if type(exc).__module__.startswith("gctr_cli") and str(exc) else exc_message(exc)
@@ -501,12 +508,17 @@ class Outputs:
         aligned_file = aligned_path(self.outdir, outcome.pair_id, outcome.source)
         aligned = aligned_file if self.write_aligned else None
         errors_size = self.errors.size()
-        if outcome.transform is None:
-            # a failed row never stands beside a matrix or aligned cloud of its pair id (left by an earlier
-            # run of a pair that --resume runs again because its inputs changed)
-            for stale in (matrix, aligned_file):
-                if stale.is_file():
-                    stale.unlink()
+        # a row never stands beside a file of an earlier run of its pair id (one that --resume runs again
+        # because its inputs changed): a failed row beside no matrix, and no aligned cloud or snapshot
+        # that this run does not write (the source's format changed, no --write-aligned / --snapshots)
+        stale = [] if outcome.transform is not None else [matrix]
+        stale += [old for old in aligned_paths(self.outdir, outcome.pair_id)
+                  if outcome.transform is None or old != aligned]
+        if outcome.snapshot_png is None:
+            stale.append(self.outdir / SNAPSHOTS_DIR / f"{outcome.pair_id}.png")
+        for old in stale:
+            if old.is_file():
+                old.unlink()
         try:
             if outcome.transform is not None:
                 from gctr_cli.io import write_matrix

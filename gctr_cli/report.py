@@ -403,10 +403,15 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     errs = {r["pair_id"]: r for r in _read_csv(outdir / "tm_errors.csv")}
     if config is None:
         config = _load_config(outdir)
-    run = summary
-    if summary is None or summary.n_pairs != len(rows):
-        # the report covers every row of the folder: after --resume with another manifest, more than the run's
-        summary = _summary_from_rows(outdir, rows, set(errs), run)
+    others: list[dict[str, str]] = []
+    if summary is None or not summary.pair_ids:
+        summary = _summary_from_rows(outdir, rows, set(errs), summary)  # no manifest known: every row
+    else:
+        # the run's manifest is what the cards, the plots and the exit code count; rows of other pair ids
+        # (earlier runs with another manifest: pairs since removed) are listed apart, not counted
+        manifest = set(summary.pair_ids)
+        others = [r for r in rows if r.get("pair_id") not in manifest]
+        rows = [r for r in rows if r.get("pair_id") in manifest]
     thresholds = getattr(config, "success", None)
 
     s = summary
@@ -444,9 +449,9 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     kv: list[tuple[str, str]] = []
     if s.n_resumed:
         kv.append(("resumed", f"{s.n_resumed} {_plural(s.n_resumed, 'pair')} done by an earlier run"))
-    if run is not None and run.n_pairs != s.n_pairs:
-        kv.append(("this run", f"a manifest of {run.n_pairs} {_plural(run.n_pairs, 'pair')}; the report covers all "
-                               f"{s.n_pairs} rows of transforms.csv, earlier runs' included"))
+    if others:
+        kv.append(("not counted", f"{len(others)} {_plural(len(others), 'row')} of transforms.csv for pairs that "
+                                  "are not in the manifest of this run (earlier runs), listed apart at the end"))
     if s.median_rot_err_deg is not None:
         kv.append(("median errors",
                    f"rotation {_num(s.median_rot_err_deg)}°, translation {_num(s.median_trans_err)} "
@@ -496,6 +501,30 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
         w(f"<th data-key=\"{key}\" data-type=\"{typ}\" tabindex=\"0\" scope=\"col\" title=\"{_e(tip)}\">"
           f"{_e(label)}</th>")
     w("</tr></thead>\n<tbody>\n")
+    _pair_rows(w, rows, errs, gt_ids, snap_dir if has_snapshots else None)
+    w("</tbody>\n</table>\n</div>\n</section>\n")
+    if others:
+        w("<section id=\"other-pairs-section\">\n<h2>Rows of pairs not in this run's manifest</h2>\n")
+        w(f"<p class=\"meta\">{len(others)} {_plural(len(others), 'row')} of earlier runs in this folder whose pairs "
+          "this run's manifest does not list (removed since, or another manifest's). Their files are still in "
+          "matrices/ and the CSVs; the summary above does not count them.</p>\n")
+        w("<div class=\"scroll\">\n<table id=\"other-pairs\">\n<thead><tr><th>snapshot</th>")
+        for _key, label, _typ, tip in COLUMNS:
+            w(f"<th scope=\"col\" title=\"{_e(tip)}\">{_e(label)}</th>")
+        w("</tr></thead>\n<tbody>\n")
+        _pair_rows(w, others, errs, set(), snap_dir if has_snapshots else None)
+        w("</tbody>\n</table>\n</div>\n</section>\n")
+    w("</main>\n")
+    w("<footer>Matrices map the source onto the target: target &asymp; T &middot; [source; 1]. "
+      "Sort by URL too: <code>report.html#sort=-rot_err_deg&amp;status=failed</code>.</footer>\n")
+    w(f"<script>{_JS}</script>\n</body>\n</html>\n")
+    return "".join(out)
+
+
+def _pair_rows(w: Any, rows: Sequence[dict[str, str]], errs: dict[str, dict[str, str]], gt_ids: set[str],
+               snap_dir: Path | None) -> None:
+    """The ``<tr>`` of each row of ``transforms.csv`` (``gt_ids``: pairs whose failure counts as no success;
+    ``snap_dir``: the snapshots folder, when the run made one)."""
     for r in rows:
         pid = r.get("pair_id", "")
         status = r.get("status", "")
@@ -507,8 +536,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
                  **{k: e.get(k, "") for k in ("rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "success")}}
         cls = "ok" if status == "ok" else "failed"
         w(f"<tr class=\"{cls}\" data-status=\"{_e(cls)}\" data-pair=\"{_e(pid)}\">")
-        snap = snap_dir / f"{pid}.png"
-        if has_snapshots and snap.exists():
+        if snap_dir is not None and (snap_dir / f"{pid}.png").exists():
             href = "snapshots/" + quote(f"{pid}.png")
             w(f"<td class=\"thumb\"><a href=\"{_e(href)}\"><img src=\"{_e(href)}\" loading=\"lazy\" width=\"108\" "
               f"height=\"72\" alt=\"snapshot of {_e(pid)}\"></a></td>")
@@ -529,11 +557,6 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
             else:
                 w(f"<td>{_e(raw)}</td>")
         w("</tr>\n")
-    w("</tbody>\n</table>\n</div>\n</section>\n</main>\n")
-    w("<footer>Matrices map the source onto the target: target &asymp; T &middot; [source; 1]. "
-      "Sort by URL too: <code>report.html#sort=-rot_err_deg&amp;status=failed</code>.</footer>\n")
-    w(f"<script>{_JS}</script>\n</body>\n</html>\n")
-    return "".join(out)
 
 
 def write_report(outdir: str | Path, *, summary: Any = None, config: Any = None) -> Path:

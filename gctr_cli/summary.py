@@ -44,6 +44,10 @@ class BatchSummary:
     wall_time_s: float
     failures: tuple[tuple[str, str], ...] = field(default_factory=tuple)
     gt_ids: tuple[str, ...] = ()  # the pairs with ground truth (a failed one among them is no success)
+    #: ``ok`` pairs that are no success by their ground truth: (pair id, rotation error in degrees, translation
+    #: error / target diagonal, scale error), the wrong answers a CI log must name
+    misses: tuple[tuple[str, float, float, float], ...] = ()
+    pair_ids: tuple[str, ...] = ()  # the manifest's pairs, in its order
 
     @property
     def all_ok(self) -> bool:
@@ -74,6 +78,8 @@ def summarize(pairs: Sequence[Any], outdir: str | Path, *, wall_time_s: float = 
             failures.append((p.pair_id, row["message"]))
     err_rows = [errs[i] for i in gt_ids if i in errs and rows.get(i, {}).get("status") == "ok"]
     n_success = sum(r["success"] == "true" for r in err_rows)
+    misses = tuple((r["pair_id"], float(r["rot_err_deg"]), float(r["trans_err_rel"]), float(r["scale_err"]))
+                   for r in err_rows if r["success"] != "true")
 
     def med(key: str) -> float | None:
         return _median([float(r[key]) for r in err_rows])
@@ -96,4 +102,6 @@ def summarize(pairs: Sequence[Any], outdir: str | Path, *, wall_time_s: float = 
         wall_time_s=wall_time_s,
         gt_ids=tuple(gt_ids),
         failures=tuple(failures),
+        misses=misses,
+        pair_ids=tuple(p.pair_id for p in pairs),
     )

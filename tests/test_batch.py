@@ -701,6 +701,28 @@ def test_resume_runs_again_the_pairs_whose_files_changed_in_place(four_pairs, fa
     assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 0  # nothing changed since
 
 
+def test_a_pair_run_again_keeps_no_aligned_cloud_or_snapshot_of_its_earlier_run(four_pairs, fast_config, tmp_path):
+    """Only the aligned cloud with the current source's extension was removed when a pair ran again, and
+    snapshots never: after its scans came as ``.pcd`` the folder held last night's ``.ply`` too, a failed
+    pair kept it, and the report showed the old picture titled "ok". A row stands only beside files this
+    run wrote for it."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1, write_aligned=True, snapshots=True)
+    assert (out / "aligned" / "ply_ply.ply").is_file() and (out / "snapshots" / "ply_ply.png").is_file()
+    row = four_pairs.rows[0]
+    pcd = four_pairs.root / "clouds" / "ply_ply_src.pcd"
+    write_cloud(pcd, load_point_cloud(four_pairs.root / row["source"]))
+    row["source"] = pcd.relative_to(four_pairs.root).as_posix()
+    run(four_pairs, fast_config, out, workers=1, resume=True, write_aligned=True)  # no --snapshots this time
+    assert sorted(p.name for p in (out / "aligned").glob("ply_ply.*")) == ["ply_ply.pcd"]
+    assert not (out / "snapshots" / "ply_ply.png").exists()
+    assert (out / "snapshots" / "pcd_xyz.png").is_file()  # pairs not run again keep theirs
+    pcd.write_text("not a pcd\n")
+    run(four_pairs, fast_config, out, workers=1, resume=True, write_aligned=True, snapshots=True)
+    assert by_id(read_csv(out / "transforms.csv")[1])["ply_ply"]["status"] == "failed"
+    assert not list((out / "aligned").glob("ply_ply.*")) and not (out / "matrices" / "ply_ply.txt").exists()
+
+
 def test_resume_reads_the_inputs_recorded_before_file_stamps(four_pairs, fast_config, tmp_path):
     """An inputs file written before the stamps (four columns) is still read: paths are compared, files
     changed in place are not known, and the run records the stamps from then on."""

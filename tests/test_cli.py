@@ -392,6 +392,20 @@ def test_batch_all_ok_exit_0_and_resume(runner, fake_batch, four_pairs, tmp_path
     assert len(read_csv(out / "transforms.csv")[1]) == 5
 
 
+def test_batch_names_the_pairs_that_are_ok_but_wrong(runner, fake_batch, four_pairs, tmp_path):
+    """A CI log showed "success: 3/4" and exit 3 but named only refused pairs: which pair regressed, and by
+    how much, took tm_errors.csv. The wrong answers are listed with the errors over their limits."""
+    four_pairs.rows[0]["gt"] = four_pairs.rows[1]["gt"]  # ply_ply judged against another pair's ground truth
+    errs = transform_errors(four_pairs.gt["ply_ply"], four_pairs.gt["pcd_xyz"], 1.0)
+    res = invoke(runner, "batch", four_pairs.manifest(), "-o", tmp_path / "out", "-j", 1, "--min-success", 0.9)
+    assert res.exit_code == 3, res.output
+    assert "success: 3/4 pairs with ground truth (75.0%)" in res.stdout
+    lines = res.stdout.splitlines()
+    at = lines.index("ok but wrong by their ground truth:")
+    assert lines[at + 1].startswith(f"  ply_ply: rotation {errs.rot_err_deg:.4g} deg (limit 5 deg)")
+    assert len(lines) == at + 2 or not lines[at + 2].startswith("  ")  # only that pair
+
+
 def test_batch_write_aligned(runner, fake_batch, four_pairs, tmp_path):
     out = tmp_path / "out"
     res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "-j", 1, "--write-aligned")

@@ -148,24 +148,78 @@ def test_report_without_ground_truth_and_after_resume(dataset, fast_config, tmp_
     assert_self_contained(text, page)
 
 
-def test_report_after_resume_with_a_smaller_manifest_counts_every_row(four_pairs, fast_config, tmp_path):
-    """After ``--resume`` with a manifest of one pair, the cards said "1 pair, 1 ok, 0 failed, 100%" above a
-    table of all the folder's rows, failed ones included: the report covers every row, and says which
-    were this run's."""
+def test_report_after_resume_with_a_smaller_manifest_counts_the_runs_pairs(four_pairs, fast_config, tmp_path):
+    """A nightly job whose manifest lost pairs (files deleted) printed "6/6, 100%" and exited 0, while the report
+    counted every row of the folder ("8 pairs, 1 failed, 87.5%", blaming a pair whose files were gone) and
+    said "resumed 8" of 6. The report counts the run's manifest, as stdout and the exit code do; the other
+    rows are listed apart and named as not counted."""
     out = tmp_path / "out"
     four_pairs.add_raw("broken", "nowhere.ply", four_pairs.rows[0]["target"], four_pairs.rows[0]["gt"])
     run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
     rows = list(four_pairs.rows)
-    four_pairs.rows = rows[:1]
+    four_pairs.rows = rows[:2]
     summary = run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register,
                         resume=True)
-    assert (summary.n_pairs, summary.n_failed) == (1, 0)  # stdout's summary: the run's manifest
+    assert (summary.n_pairs, summary.n_failed, summary.n_resumed) == (2, 0, 2)  # stdout's summary
     text = (out / "report.html").read_text()
-    assert len(parse(text).rows) == 6
-    assert '<div class="v">6</div><div class="k">pairs</div>' in text
-    assert '<div class="v">1</div><div class="k">failed</div>' in text
-    assert "success (4/5 with ground truth)" in text  # the broken pair had ground truth: no success
-    assert "a manifest of 1 pair; the report covers all 6 rows of transforms.csv" in text
+    assert [r["data-pair"] for r in parse(text).rows] == ["ply_ply", "pcd_xyz"]
+    assert '<div class="v">2</div><div class="k">pairs</div>' in text
+    assert '<div class="v">0</div><div class="k">failed</div>' in text
+    assert "success (2/2 with ground truth)" in text and "2 pairs done by an earlier run" in text
+    assert ("4 rows of transforms.csv for pairs that are not in the manifest of this run (earlier runs), listed "
+            "apart at the end") in text
+    other = text[text.index('<table id="other-pairs">'):]
+    assert [pid for pid in ("xyz_ply", "ply_pcd_utm", "no_gt", "broken") if f'data-pair="{pid}"' in other] == [
+        "xyz_ply", "ply_pcd_utm", "no_gt", "broken"]
+    # without a run's summary (the report rendered from the folder alone) every row counts
+    alone = render_report(out)
+    assert len(parse(alone).rows) == 6 and '<table id="other-pairs">' not in alone
+    assert '<div class="v">1</div><div class="k">failed</div>' in alone
+
+
+def test_a_report_that_cannot_be_written_leaves_no_out_of_date_one(four_pairs, fast_config, tmp_path, monkeypatch,
+                                                                  caplog):
+    """A full disk at the end of a resumed night left the previous night's report ("4 pairs, 100%") in place
+    and the summary still printed its path; the old report is removed, and the warning says so."""
+    out = tmp_path / "out"
+    rows = list(four_pairs.rows)
+    four_pairs.rows = rows[:2]
+    run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    assert (out / "report.html").is_file()
+
+    def no_space(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("gctr_cli.report.write_report", no_space)
+    four_pairs.rows = rows
+    with caplog.at_level("WARNING", logger="gctr_cli.batch"):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register, resume=True)
+    assert not (out / "report.html").exists()
+    assert f"could not write {out / 'report.html'}: OSError: [Errno 28] No space left on device; removed the " \
+           "earlier one, which is out of date" in caplog.text
+
+
+def test_a_stopped_run_rewrites_the_report_of_what_it_recorded(four_pairs, fast_config, tmp_path):
+    """A resumed run stopped by SIGTERM or Ctrl-C after recording pairs left the earlier run's report, which
+    showed fewer rows than transforms.csv: the report is written of the rows recorded so far."""
+    out = tmp_path / "out"
+    rows = list(four_pairs.rows)
+    four_pairs.rows = rows[:2]
+    run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    four_pairs.rows = rows
+
+    def stop(outcome):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register, resume=True,
+                  on_outcome=stop)
+    recorded = [r["pair_id"] for r in read_csv(out / "transforms.csv")[1]]
+    assert len(recorded) == 3
+    text = (out / "report.html").read_text()
+    assert [r["data-pair"] for r in parse(text).rows] == recorded
+    assert '<div class="v">5</div><div class="k">pairs</div>' in text  # the manifest's: 2 still to do
+    assert '<div class="v">2</div><div class="k">failed</div>' in text  # "no result recorded"
 
 
 def test_cli_prints_the_report_path(four_pairs, tmp_path, monkeypatch):
