@@ -158,6 +158,7 @@ def run_batch(
     snapshots: bool = False,
     write_aligned: bool = False,
     manifest: str | Path | None = None,
+    retry_failed: bool = False,
 ) -> BatchSummary:
     """Register every pair of ``pairs`` (a manifest) and stream the outputs into ``outdir``.
 
@@ -178,6 +179,8 @@ def run_batch(
     failed row can be appended to ``transforms.csv``): the finished pairs are saved, ``resume`` goes on.
     Problems of single pairs never raise: they are failed rows. ``manifest``: the file the pairs came
     from, which the run must not overwrite either (nor any input of a pair: :class:`BatchError`).
+    ``retry_failed`` (with ``resume``): also run again the pairs whose earlier row is failed (a time limit
+    since raised, a worker killed for memory, a file whose permissions were fixed).
     """
     t0 = time.monotonic()
     outdir = Path(outdir)
@@ -208,7 +211,7 @@ def run_batch(
                              "was run") from exc
         try:
             summary = _run_locked(pairs, config, outdir, resume, n_workers, ref, executor, scheduler, snapshots,
-                                  write_aligned, on_start, note, t0)
+                                  write_aligned, on_start, note, t0, retry_failed)
             recorded = True
             return summary
         finally:
@@ -253,7 +256,7 @@ def _missing_folders(outdir: Path) -> list[Path]:
 def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool, n_workers: int, ref: Any,
                 executor: str, scheduler: str | None, snapshots: bool, write_aligned: bool,
                 on_start: Callable[[int, int], None] | None, on_outcome: Callable[[PairOutcome], None] | None,
-                t0: float) -> BatchSummary:
+                t0: float, retry_failed: bool = False) -> BatchSummary:
     """:func:`run_batch` in its locked output folder. A run that stops before ``transforms.csv`` has a
     new row (a full disk while setting up, an executor that cannot start, Ctrl-C) leaves the folder as
     it was: what it created is removed and a ``transforms.csv`` it rewrote (``--resume``) is restored."""
@@ -274,7 +277,7 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
         check_case_collisions(outdir, (p.pair_id for p in pairs))
         inputs = pair_inputs(pairs)
         done = prepare_outdir(outdir, config, resume, inputs, batch_outputs(outdir, pairs, snapshots, write_aligned),
-                              aligned_wanted=write_aligned)
+                              aligned_wanted=write_aligned, retry_failed=retry_failed)
         todo = [p for p in pairs if p.pair_id not in done]
         n_resumed = len(pairs) - len(todo)
         # transforms.csv first: it marks the folder as a gctr run's, so that a kill before the first pair

@@ -567,6 +567,9 @@ def _print_summary(summary: Any, config: Any) -> None:
               help="Worker processes (default: config batch.workers; 0 = one per core).")
 @click.option("--resume", is_flag=True,
               help="Continue an interrupted run: skip pairs already in OUTDIR/transforms.csv.")
+@click.option("--retry-failed", is_flag=True,
+              help="With --resume: also run again the pairs whose earlier row is failed (timeouts, killed "
+                   "workers, files fixed since).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 @click.option("--min-success", type=click.FloatRange(0.0, 1.0), metavar="RATE",
               help="Exit 3 if the success rate over pairs with ground truth is below RATE (0..1).")
@@ -582,9 +585,9 @@ def _print_summary(summary: Any, config: Any) -> None:
               help="Also write OUTDIR/aligned/<pair_id>.<ext>: each registered source moved onto its target "
                    "(the source's format when writable, else PLY; attributes kept where the format allows).")
 @verbose_option
-def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | None, resume: bool, quiet: bool,
-          min_success: float | None, executor: str | None, scheduler: str | None, snapshots: bool,
-          write_aligned: bool) -> None:
+def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | None, resume: bool,
+          retry_failed: bool, quiet: bool, min_success: float | None, executor: str | None, scheduler: str | None,
+          snapshots: bool, write_aligned: bool) -> None:
     """Register every pair of MANIFEST in a pool of worker processes (or on a dask cluster).
 
     MANIFEST is a CSV with header pair_id,source,target[,gt] (relative paths are relative to the
@@ -608,6 +611,8 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         executor = "dask" if scheduler else "local"
     elif executor == "local" and scheduler:
         _die("--scheduler needs --executor dask")
+    if retry_failed and not resume:
+        _die("--retry-failed needs --resume (it runs again the failed pairs of an earlier run in OUTDIR)")
     config = _load_config(config_path, runs_here=scheduler is None)  # a LocalCluster runs here too
     from gctr_cli import batch as batch_mod
     from gctr_cli.manifest import ManifestError, read_manifest
@@ -650,7 +655,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
             summary = batch_mod.run_batch(
                 pairs, config, outdir, workers=workers, resume=resume, on_start=on_start, on_outcome=on_outcome,
                 executor=executor, scheduler=scheduler, snapshots=snapshots, write_aligned=write_aligned,
-                manifest=manifest,
+                manifest=manifest, retry_failed=retry_failed,
             )
     except batch_mod.ExecutorLost as exc:  # the cause's traceback (from distributed) only under -vv
         logger.debug("the batch stopped", exc_info=True)

@@ -351,11 +351,12 @@ def _changed_inputs(outdir: Path, rows: list[dict[str, str]], with_errors: set[s
 
 
 def prepare_outdir(outdir: Path, config: Config, resume: bool, inputs: Inputs | None = None,
-                   written: dict[Path, str] | None = None, aligned_wanted: bool = False) -> set[str]:
+                   written: dict[Path, str] | None = None, aligned_wanted: bool = False,
+                   retry_failed: bool = False) -> set[str]:
     """Make the folder consistent for appending; return the pair ids already committed. On ``resume``
     the rows of pairs whose outputs could not be written are dropped, so that they run again, and so
     are those whose inputs changed since (:func:`_changed_inputs`; only of pairs in ``inputs``, the
-    batch's, when given: another manifest's rows stay).
+    batch's, when given: another manifest's rows stay), and with ``retry_failed`` every failed one.
 
     ``written`` (:func:`batch_outputs`): in a folder without ``transforms.csv`` (no gctr run started there)
     a file at one of these paths is someone else's, and :class:`BatchError` is raised rather than
@@ -395,13 +396,13 @@ def prepare_outdir(outdir: Path, config: Config, resume: bool, inputs: Inputs | 
     rows = read_rows(transforms, TRANSFORMS_COLUMNS)
 
     def unwritten(row: dict[str, str]) -> bool:  # the folder's fault (a full disk, ...), not the pair's
-        return (row["status"] == "failed" and row["message"].startswith(OUTPUT_FAILURE)
+        return (row["status"] == "failed" and (retry_failed or row["message"].startswith(OUTPUT_FAILURE))
                 and (inputs is None or row["pair_id"] in inputs))
 
     kept_rows = [r for r in rows if not unwritten(r)]
     if len(kept_rows) < len(rows):  # run them again
-        logger.info("%s: running again %d pairs whose outputs could not be written", transforms,
-                    len(rows) - len(kept_rows))
+        logger.info("%s: running again %d pairs %s", transforms, len(rows) - len(kept_rows),
+                    "that failed (--retry-failed)" if retry_failed else "whose outputs could not be written")
     err_rows = read_rows(errors, ERRORS_COLUMNS)
     changed = (_changed_inputs(outdir, kept_rows, {r["pair_id"] for r in err_rows}, inputs, aligned_wanted)
                if inputs else {})

@@ -307,6 +307,27 @@ def test_timeout_kills_the_pair_and_batch_goes_on(four_pairs, tmp_path):
     assert sum(r["status"] == "ok" for r in rows.values()) == 5
 
 
+def test_retry_failed_runs_again_the_failed_pairs_of_an_earlier_run(dataset, tmp_path):
+    """Pairs that timed out (or whose worker was killed) stayed failed night after night, even after the time
+    limit was raised: ``--resume`` keeps failed rows. ``retry_failed`` runs them again; ok rows stay."""
+    dataset.add_pair("a")
+    dataset.add_pair("b")
+    out = tmp_path / "out"
+    tight = config_from_dict({"seed": 7, "batch": {"time_limit_s": 0.1}})
+    run_batch(dataset.specs(), tight, out, workers=1, register_fn=fake_engine.slow_register)
+    assert {r["message"] for r in read_csv(out / "transforms.csv")[1]} == {"timed out after 0.1 s"}
+    dataset.add_pair("c")
+    roomy = config_from_dict({"seed": 7, "batch": {"time_limit_s": 30}})
+    summary = run_batch(dataset.specs(), roomy, out, workers=1, register_fn=fake_engine.register, resume=True)
+    assert (summary.n_run, summary.n_failed) == (1, 2)  # only the new pair: failed rows are kept
+    kept = by_id(read_csv(out / "transforms.csv")[1])["c"]
+    summary = run_batch(dataset.specs(), roomy, out, workers=1, register_fn=fake_engine.register, resume=True,
+                        retry_failed=True)
+    assert (summary.n_run, summary.n_resumed, summary.n_failed) == (2, 1, 0)
+    rows = read_csv(out / "transforms.csv")[1]
+    assert sorted(r["pair_id"] for r in rows) == ["a", "b", "c"] and by_id(rows)["c"] == kept
+
+
 @pytest.mark.slow
 def test_results_do_not_depend_on_worker_count(four_pairs, fast_config, tmp_path):
     for i in range(3):

@@ -406,6 +406,14 @@ def test_batch_names_the_pairs_that_are_ok_but_wrong(runner, fake_batch, four_pa
     assert len(lines) == at + 2 or not lines[at + 2].startswith("  ")  # only that pair
 
 
+def test_batch_retry_failed_needs_resume(runner, fake_batch, four_pairs, tmp_path):
+    res = invoke(runner, "batch", four_pairs.manifest(), "-o", tmp_path / "out", "--retry-failed")
+    assert res.exit_code == 2
+    assert res.stderr == ("gctr: error: --retry-failed needs --resume (it runs again the failed pairs of an earlier "
+                          "run in OUTDIR)\n")
+    assert not (tmp_path / "out").exists()
+
+
 def test_batch_write_aligned(runner, fake_batch, four_pairs, tmp_path):
     out = tmp_path / "out"
     res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "-j", 1, "--write-aligned")
