@@ -68,6 +68,8 @@ def pair_id_problem(pair_id: str) -> str | None:
             return f"contains {label}"
     if any(ord(c) < 32 or ord(c) == 127 for c in pair_id):
         return "contains a control character"
+    if pair_id != pair_id.strip():  # a manifest's cells are stripped: ' a' would be read back as 'a'
+        return "begins or ends with blank space"
     return None
 
 
@@ -238,7 +240,8 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
         raise ManifestError(f"{path}: cannot write manifest ({write_error(path, exc)})") from exc
 
 
-def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:
+def _cloud_files_by_stem(folder: Path, role: str) -> tuple[dict[str, Path], list[str]]:
+    """The point cloud files of ``folder`` by stem, and the stems held by several files (left out)."""
     found: dict[str, list[Path]] = {}
     for f in sorted(folder.iterdir()):
         # a link counts whatever it points to (a DVC cache file without extension, or something
@@ -248,10 +251,11 @@ def _cloud_files_by_stem(folder: Path, role: str) -> dict[str, Path]:
             continue
         found.setdefault(f.stem, []).append(f)
     ambiguous = {s: fs for s, fs in found.items() if len(fs) > 1}
-    if ambiguous:
+    if ambiguous:  # one such stem must not cost a nightly run its other pairs: left out, with a warning
         desc = _listing([f"{s} ({', '.join(f.name for f in fs)})" for s, fs in sorted(ambiguous.items())])
-        raise ManifestError(f"{folder}: {role} folder has several point cloud files with the same stem: {desc}")
-    return {s: _absolute(fs[0]) for s, fs in found.items()}
+        logger.warning("%s: %s folder has several point cloud files with the same stem, left out (move or rename "
+                       "one): %s", folder, role, desc)
+    return {s: _absolute(fs[0]) for s, fs in found.items() if s not in ambiguous}, sorted(ambiguous)
 
 
 def _clouds(n: int) -> str:
@@ -288,8 +292,8 @@ def build_manifest(
     hidden files are ignored); ``pair_id`` is the
     stem, and the ground truth is ``<gt_dir>/<stem>.txt`` when that file exists. Pairs are sorted by
     ``pair_id``. Stems present on one side only are logged as a warning; stems unsafe as a pair_id are
-    skipped with a warning. Raises :class:`ManifestError` if a folder is missing, a folder holds two
-    clouds with the same stem, or no stem matches.
+    skipped with a warning, and so are stems held by several clouds of one folder (``a.ply`` beside
+    ``a.laz``). Raises :class:`ManifestError` if a folder is missing or no stem matches.
     """
     sdir, tdir = Path(source_dir), Path(target_dir)
     for d, role in ((sdir, "source"), (tdir, "target")) + (((Path(gt_dir), "ground-truth"),) if gt_dir else ()):
@@ -299,11 +303,12 @@ def build_manifest(
     if os.path.realpath(sdir) == os.path.realpath(tdir):
         raise ManifestError(f"{sdir}: source and target folders are the same; every file would pair with itself")
 
-    src = _cloud_files_by_stem(sdir, "source")
-    tgt = _cloud_files_by_stem(tdir, "target")
-    common = sorted(set(src) & set(tgt))
-    only_src = sorted(set(src) - set(tgt))
-    only_tgt = sorted(set(tgt) - set(src))
+    src, ambiguous_s = _cloud_files_by_stem(sdir, "source")
+    tgt, ambiguous_t = _cloud_files_by_stem(tdir, "target")
+    ambiguous = set(ambiguous_s) | set(ambiguous_t)  # left out on both sides (named once, as ambiguous)
+    common = sorted((set(src) & set(tgt)) - ambiguous)
+    only_src = sorted(set(src) - set(tgt) - ambiguous)
+    only_tgt = sorted(set(tgt) - set(src) - ambiguous)
     if only_src or only_tgt:
         sides = [f"{len(only)} only in {d} [{_listing(only)}]" for only, d in ((only_src, sdir), (only_tgt, tdir))
                  if only]
@@ -327,8 +332,11 @@ def build_manifest(
                        _listing(sorted(would_pair)))
     unsafe = [s for s in common if pair_id_problem(s)]
     if unsafe:
-        logger.warning("skipping %d stem(s) unsafe as pair_id: %s", len(unsafe), _listing(unsafe))
+        logger.warning("skipping %d stem(s) unsafe as pair_id: %s", len(unsafe),
+                       _listing([f"{s!r} ({pair_id_problem(s)})" for s in unsafe]))
         common = [s for s in common if s not in unsafe]
+    if ambiguous:
+        hint += f"; left out as ambiguous (several files with one stem): {_listing(sorted(ambiguous))}"
     if not common:
         raise ManifestError(
             f"no matching file stems between {sdir} ({_clouds(len(src))}) and {tdir} ({_clouds(len(tgt))}){hint}"

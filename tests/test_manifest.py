@@ -345,12 +345,35 @@ def test_left_out_csv_files_are_named_where_they_would_have_paired(tmp_path, cap
                                "are usually tables; name .csv clouds in a manifest): r1"]
 
 
-def test_build_ambiguous_stem(folders):
-    src, tgt, _ = folders
+def test_build_leaves_an_ambiguous_stem_out_and_pairs_the_rest(folders, caplog):
+    """``a.ply`` beside ``a.laz`` (a scan just converted) stopped ``gctr manifest``, and with it the documented
+    ``manifest && batch`` cron line: no pair was registered that night. The stem is left out with a warning
+    naming its files; the other stems pair."""
+    src, tgt, gt = folders
     (src / "s01.pcd").write_text("x")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        assert [p.pair_id for p in build_manifest(src, tgt, gt)] == ["s02", "s03"]
+    assert caplog.messages[0] == (f"{src}: source folder has several point cloud files with the same stem, left "
+                                  "out (move or rename one): s01 (s01.pcd, s01.ply)")
+    for stem in ("s02", "s03"):
+        (tgt / f"{stem}.xyz").write_text("x")
     with pytest.raises(ManifestError) as ei:
         build_manifest(src, tgt)
-    assert "same stem" in str(ei.value) and "s01.pcd" in str(ei.value) and "s01.ply" in str(ei.value)
+    assert str(ei.value).endswith("; left out as ambiguous (several files with one stem): s01, s02, s03")
+
+
+def test_build_skips_stems_that_begin_or_end_with_blank_space(folders, caplog):
+    """A stem ``' s01'`` was written as the pair id ``' s01'``, which the manifest reader strips: it clashed
+    with ``s01`` (``gctr batch`` refused the whole manifest) or was renamed silently."""
+    src, tgt, gt = folders
+    for d in (src, tgt):
+        (d / " s01.ply").write_text("x")
+        (d / "s04 .ply").write_text("x")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        pairs = build_manifest(src, tgt, gt)
+    assert [p.pair_id for p in pairs] == ["s01", "s02", "s03"]
+    assert ("skipping 2 stem(s) unsafe as pair_id: ' s01' (begins or ends with blank space), 's04 ' (begins or "
+            "ends with blank space)") in caplog.messages
 
 
 def test_build_missing_folders_and_same_folder(folders, tmp_path):
