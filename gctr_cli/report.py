@@ -397,6 +397,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     config (default: ``OUTDIR/config.yaml``).
     """
     from gctr_cli import __version__
+    from gctr_cli.summary import NO_RESULT
 
     outdir = Path(outdir)
     rows = _read_csv(outdir / "transforms.csv")
@@ -449,6 +450,10 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     kv: list[tuple[str, str]] = []
     if s.n_resumed:
         kv.append(("resumed", f"{s.n_resumed} {_plural(s.n_resumed, 'pair')} done by an earlier run"))
+    n_missing = sum(1 for _pid, msg in getattr(s, "failures", ()) if msg == NO_RESULT)
+    if n_missing:
+        kv.append(("no result yet", f"{n_missing} {_plural(n_missing, 'pair')} of the manifest (the run was stopped "
+                                    "before them): counted as failed; rerun with --resume to finish"))
     if others:
         kv.append(("not counted", f"{len(others)} {_plural(len(others), 'row')} of transforms.csv for pairs that "
                                   "are not in the manifest of this run (earlier runs), listed apart at the end"))

@@ -16,7 +16,10 @@ from typing import Any
 from gctr_cli.outcome import ERRORS_COLUMNS, TRANSFORMS_COLUMNS
 from gctr_cli.outdir import ERRORS_FILE, TRANSFORMS_FILE, read_rows
 
-__all__ = ["BatchSummary", "summarize"]
+__all__ = ["NO_RESULT", "BatchSummary", "summarize"]
+
+#: the message of a manifest pair without a row (a run stopped before it)
+NO_RESULT = "no result recorded"
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,7 @@ def summarize(pairs: Sequence[Any], outdir: str | Path, *, wall_time_s: float = 
     for p in pairs:
         row = rows.get(p.pair_id)
         if row is None:
-            failures.append((p.pair_id, "no result recorded"))
+            failures.append((p.pair_id, NO_RESULT))
         elif row["status"] == "ok":
             n_ok += 1
         else:

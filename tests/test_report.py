@@ -220,6 +220,8 @@ def test_a_stopped_run_rewrites_the_report_of_what_it_recorded(four_pairs, fast_
     assert [r["data-pair"] for r in parse(text).rows] == recorded
     assert '<div class="v">5</div><div class="k">pairs</div>' in text  # the manifest's: 2 still to do
     assert '<div class="v">2</div><div class="k">failed</div>' in text  # "no result recorded"
+    assert ("2 pairs of the manifest (the run was stopped before them): counted as failed; rerun with --resume to "
+            "finish") in text
 
 
 def test_cli_prints_the_report_path(four_pairs, tmp_path, monkeypatch):
