@@ -31,6 +31,7 @@ lock, the errors) are re-exported from their modules.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import shutil
@@ -49,6 +50,7 @@ from gctr_cli.outcome import ERRORS_COLUMNS, MATRIX_COLUMNS, TRANSFORMS_COLUMNS,
 from gctr_cli.outdir import (
     ALIGNED_DIR,
     CONFIG_FILE,
+    ERRORS_FILE,
     INPUTS_FILE,
     OUTPUT_NAMES,
     REPORT_FILE,
@@ -123,13 +125,15 @@ def check_inputs_not_overwritten(pairs: Sequence[Any], outdir: str | Path, snaps
                              "another output folder (nothing was run)")
 
 
-def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> None:
-    """``OUTDIR/report.html``; a problem is logged, never fails the batch. A report that cannot be written
-    does not leave an earlier run's in its place: that one is out of date (the rows have changed)."""
+def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> bool:
+    """Write ``OUTDIR/report.html``; whether it was written. A problem is logged, never fails the batch. A
+    report that cannot be written does not leave an earlier run's in its place: that one is out of date (the
+    rows have changed)."""
     try:
         from gctr_cli.report import write_report
 
         write_report(outdir, summary=summary, config=config)
+        return True
     except Exception as exc:
         path = outdir / REPORT_FILE
         try:
@@ -141,6 +145,7 @@ def _write_report(outdir: Path, summary: BatchSummary, config: Config) -> None:
             removed = "; the earlier one there is out of date"
         logger.warning("could not write %s: %s%s", path, exc_message(exc), removed)
         logger.debug("report failure", exc_info=True)
+        return False
 
 
 def run_batch(
@@ -173,7 +178,8 @@ def run_batch(
     ``snapshots``: also write ``OUTDIR/snapshots/<pair_id>.png``. ``write_aligned``: also write each
     ok pair's source moved onto the target, ``OUTDIR/aligned/<pair_id>.<ext>`` (committed with the
     pair: if it cannot be written, the pair gets a failed row and no matrix). At the end ``OUTDIR/report.html``
-    is written (all rows of ``transforms.csv``, including resumed ones). Raises :class:`BatchError`
+    is written (the manifest's pairs, resumed ones included; rows of other pair ids listed apart), also when the
+    run is stopped after recording pairs. Raises :class:`BatchError`
     (nothing run) when the output folder is in use or inconsistent, or the executor cannot start; and
     when the batch cannot go on (:class:`ExecutorLost`: the dask scheduler went away; or not even a
     failed row can be appended to ``transforms.csv``): the finished pairs are saved, ``resume`` goes on.
@@ -270,7 +276,7 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
     try:
         before = set(os.listdir(outdir))
         # what setting up may rewrite
-        rewritten = (TRANSFORMS_FILE, CONFIG_FILE, INPUTS_FILE) if resume else (CONFIG_FILE,)
+        rewritten = (TRANSFORMS_FILE, ERRORS_FILE, CONFIG_FILE, INPUTS_FILE) if resume else (CONFIG_FILE,)
         for name in rewritten:
             if (outdir / name).is_file():
                 originals[name] = (outdir / name).read_bytes()
@@ -322,11 +328,19 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
         if outputs is not None:
             outputs.close()
             if stopped_with_rows:  # stopped (Ctrl-C, SIGTERM, a lost scheduler): the report says so far
-                _write_report(outdir, summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run,
-                                                n_resumed=n_resumed), config)
+                try:
+                    _summarize_and_report(pairs, outdir, config, t0, n_run, n_resumed)
+                except Exception:  # the stop's own error is the one to raise
+                    logger.warning("could not write %s of the pairs recorded so far", outdir / REPORT_FILE,
+                                   exc_info=logger.isEnabledFor(logging.DEBUG))
+    return _summarize_and_report(pairs, outdir, config, t0, n_run, n_resumed)
+
+
+def _summarize_and_report(pairs: Sequence[Any], outdir: Path, config: Config, t0: float, n_run: int,
+                          n_resumed: int) -> BatchSummary:
+    """The summary of ``outdir`` for the manifest ``pairs``, after ``report.html`` is written of it."""
     summary = summarize(pairs, outdir, wall_time_s=time.monotonic() - t0, n_run=n_run, n_resumed=n_resumed)
-    _write_report(outdir, summary, config)
-    return summary
+    return dataclasses.replace(summary, report_written=_write_report(outdir, summary, config))
 
 
 def _undo_setup(outdir: Path, before: set[str], originals: dict[str, bytes]) -> None:

@@ -510,7 +510,8 @@ def _has_rows(path: Path) -> bool:
 
 def _miss_text(rot: float, trans: float, scale: float, th: Any) -> str:
     """What puts an ``ok`` answer outside the success limits ``th``: the errors over their limits."""
-    over = [f"{what} {value:.4g}{unit} (limit {limit:g}{unit})"
+    over = [f"{what} {value:.4g}{unit} (limit {limit:g}{unit})" if float(f"{value:.4g}") != limit
+            else f"{what} {value:.8g}{unit} (limit {limit:g}{unit})"
             for what, value, limit, unit in (("rotation", rot, th.rotation_deg, " deg"),
                                              ("translation", trans, th.translation_rel, " x target diagonal"),
                                              ("scale error", scale, th.scale, ""))
@@ -553,7 +554,7 @@ def _print_summary(summary: Any, config: Any) -> None:
             echo(f"  ... and {len(s.misses) - 50} more (see tm_errors.csv)")
     extras = "".join(f", {name}/" for name in ("snapshots", "aligned") if (Path(s.outdir) / name).is_dir())
     echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml{extras}")
-    if (Path(s.outdir) / "report.html").exists():
+    if s.report_written:
         echo(f"report: {s.outdir}/report.html")
 
 
@@ -566,7 +567,8 @@ def _print_summary(summary: Any, config: Any) -> None:
 @click.option("-j", "--workers", type=click.IntRange(min=0),
               help="Worker processes (default: config batch.workers; 0 = one per core).")
 @click.option("--resume", is_flag=True,
-              help="Continue an interrupted run: skip pairs already in OUTDIR/transforms.csv.")
+              help="Continue an interrupted run: skip pairs already in OUTDIR/transforms.csv (pairs whose "
+                   "input files changed since, as paths or on disk, run again).")
 @click.option("--retry-failed", is_flag=True,
               help="With --resume: also run again the pairs whose earlier row is failed (timeouts, killed "
                    "workers, files fixed since).")
@@ -772,7 +774,9 @@ def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Pa
     """Build a pair manifest by matching file stems of SOURCE_DIR and TARGET_DIR.
 
     a.ply in SOURCE_DIR pairs with a.pcd in TARGET_DIR (pair_id "a"); with --gt-dir, GT_DIR/a.txt is
-    its ground truth. Stems found on one side only are reported as warnings. Exit 2 on error.
+    its ground truth. Stems found on one side only, stems held by several files of one folder (a.ply
+    beside a.laz) and stems unsafe as a pair id are left out with a warning. Exit 2 when no stem pairs
+    or on another error.
 
     \b
     Example:

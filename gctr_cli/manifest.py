@@ -240,8 +240,8 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
         raise ManifestError(f"{path}: cannot write manifest ({write_error(path, exc)})") from exc
 
 
-def _cloud_files_by_stem(folder: Path, role: str) -> tuple[dict[str, Path], list[str]]:
-    """The point cloud files of ``folder`` by stem, and the stems held by several files (left out)."""
+def _cloud_files_by_stem(folder: Path, role: str) -> tuple[dict[str, Path], dict[str, list[Path]]]:
+    """The point cloud files of ``folder`` by stem, and those of the stems held by several files (left out)."""
     found: dict[str, list[Path]] = {}
     for f in sorted(folder.iterdir()):
         # a link counts whatever it points to (a DVC cache file without extension, or something
@@ -255,7 +255,7 @@ def _cloud_files_by_stem(folder: Path, role: str) -> tuple[dict[str, Path], list
         desc = _listing([f"{s} ({', '.join(f.name for f in fs)})" for s, fs in sorted(ambiguous.items())])
         logger.warning("%s: %s folder has several point cloud files with the same stem, left out (move or rename "
                        "one): %s", folder, role, desc)
-    return {s: _absolute(fs[0]) for s, fs in found.items() if s not in ambiguous}, sorted(ambiguous)
+    return {s: _absolute(fs[0]) for s, fs in found.items() if s not in ambiguous}, ambiguous
 
 
 def _clouds(n: int) -> str:
@@ -339,7 +339,8 @@ def build_manifest(
         hint += f"; left out as ambiguous (several files with one stem): {_listing(sorted(ambiguous))}"
     if not common:
         raise ManifestError(
-            f"no matching file stems between {sdir} ({_clouds(len(src))}) and {tdir} ({_clouds(len(tgt))}){hint}"
+            f"no matching file stems between {sdir} ({_clouds(len(src) + sum(map(len, ambiguous_s.values())))}) and "
+            f"{tdir} ({_clouds(len(tgt) + sum(map(len, ambiguous_t.values())))}){hint}"
         )
 
     pairs = []

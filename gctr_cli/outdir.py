@@ -2,7 +2,8 @@
 
 Layout (README, "Outputs"): ``transforms.csv`` (one row per pair, the commit log), ``tm_errors.csv``
 (pairs with ground truth), ``matrices/<pair_id>.txt``, ``snapshots/<pair_id>.png`` (``--snapshots``),
-``config.yaml`` (the resolved config), ``report.html`` (written by :mod:`gctr_cli.batch` at the end).
+``config.yaml`` (the resolved config), ``report.html`` (written by :mod:`gctr_cli.batch` at the end, or when
+a run that recorded pairs is stopped), ``.gctr-inputs.csv`` (each pair's input paths and file stamps).
 
 * **Nothing half-written.** Rows are appended with a single ``write`` of a complete line followed by
   ``fsync`` (:class:`RowLog`); matrices go to a temporary file that is renamed. A trailing partial
@@ -298,10 +299,12 @@ def _read_inputs(path: Path) -> dict[str, dict[str, str]]:
     """The rows of :data:`INPUTS_FILE` by pair id; one written before the stamps has them empty."""
     if not path.exists():
         return {}
-    try:
-        rows = read_rows(path, INPUTS_COLUMNS)
-    except BatchError:
+    with open(path, newline="", encoding="utf-8") as fh:
+        header = next(csv.reader(fh), [])
+    if tuple(header) == _INPUTS_COLUMNS_WITHOUT_STAMPS:
         rows = [r | {c: "" for c in INPUTS_COLUMNS[4:]} for r in read_rows(path, _INPUTS_COLUMNS_WITHOUT_STAMPS)]
+    else:
+        rows = read_rows(path, INPUTS_COLUMNS)
     return {r["pair_id"]: r for r in rows}
 
 
@@ -310,7 +313,13 @@ def record_inputs(outdir: Path, inputs: Inputs) -> None:
     earlier run with another manifest)."""
     path = outdir / INPUTS_FILE
     recorded = _read_inputs(path)
-    recorded |= {pid: dict(zip(INPUTS_COLUMNS, (pid, *entry), strict=True)) for pid, entry in inputs.items()}
+    for pid, entry in inputs.items():
+        row = dict(zip(INPUTS_COLUMNS, (pid, *entry), strict=True))
+        before = recorded.get(pid, {})
+        for key, _ in _FILE_ROLES:  # a file gone for now keeps the stamp it had (moved back, it is the same)
+            if row[f"{key}_stamp"] == MISSING_STAMP and before.get(key) == row[key]:
+                row[f"{key}_stamp"] = before.get(f"{key}_stamp") or MISSING_STAMP
+        recorded[pid] = row
     atomic_write(path, csv_line(INPUTS_COLUMNS) + "".join(csv_line(r[c] for c in INPUTS_COLUMNS)
                                                           for r in recorded.values()))
 
@@ -342,8 +351,8 @@ def _changed_inputs(outdir: Path, rows: list[dict[str, str]], with_errors: set[s
             why = [f"{what} {now[key]} changed on disk" for key, what in _FILE_ROLES
                    if now[key] and before.get(f"{key}_stamp") and now[f"{key}_stamp"] != MISSING_STAMP
                    and before[f"{key}_stamp"] != now[f"{key}_stamp"]]
-        if (not why and aligned_wanted and row["status"] == "ok"
-                and not aligned_path(outdir, pid, now["source"]).exists()):
+        if (not why and aligned_wanted and row["status"] == "ok" and now["source_stamp"] != MISSING_STAMP
+                and not aligned_path(outdir, pid, now["source"]).exists()):  # (a source gone: the row stays)
             why.append("no aligned cloud yet (--write-aligned)")
         if why:
             changed[pid] = "; ".join(why)
@@ -446,6 +455,17 @@ def aligned_paths(outdir: Path, pair_id: str) -> list[Path]:
     return [outdir / ALIGNED_DIR / f"{pair_id}{ext}" for ext in sorted({*WRITE_EXTENSIONS, ".ply"})]
 
 
+def _remove_stale(path: Path, pair_id: str) -> None:
+    """Remove a file an earlier run wrote for ``pair_id`` that its new row must not stand beside; one that
+    cannot be removed is named in a warning (it never fails the pair, let alone the batch)."""
+    try:
+        if path.is_file():
+            path.unlink()
+    except OSError as exc:
+        logger.warning("pair %s: cannot remove %s of an earlier run, which does not belong to its new row: %s",
+                       pair_id, path, exc_message(exc))
+
+
 def _problem(exc: BaseException) -> str:
     """gctr's own errors name the file and the problem already; others get their type too."""
     return str(exc) if type(exc).__module__.startswith("gctr_cli") and str(exc) else exc_message(exc)
@@ -518,8 +538,7 @@ class Outputs:
         if outcome.snapshot_png is None:
             stale.append(self.outdir / SNAPSHOTS_DIR / f"{outcome.pair_id}.png")
         for old in stale:
-            if old.is_file():
-                old.unlink()
+            _remove_stale(old, outcome.pair_id)
         try:
             if outcome.transform is not None:
                 from gctr_cli.io import write_matrix
@@ -552,6 +571,7 @@ class Outputs:
             write_png(self.outdir / SNAPSHOTS_DIR / f"{pair_id}.png", png)
         except Exception as exc:  # noqa: BLE001 - a snapshot never fails the pair
             logger.warning("pair %s: cannot write its snapshot: %s", pair_id, exc_message(exc))
+            _remove_stale(self.outdir / SNAPSHOTS_DIR / f"{pair_id}.png", pair_id)  # an earlier run's picture
 
     def close(self) -> None:
         self.transforms.close()

@@ -3,8 +3,9 @@
 The page needs no network: CSS and the small sorting script are inline, the plots (cumulative error
 distributions and the confidence-threshold trade-off) are inline SVG, and snapshot thumbnails are
 relative links to ``snapshots/<pair_id>.png`` next to the report. It is built from the output files
-alone (``transforms.csv``, ``tm_errors.csv``, ``config.yaml``), so after ``--resume`` it covers every
-row, including those of earlier runs.
+(``transforms.csv``, ``tm_errors.csv``, ``config.yaml``), so after ``--resume`` it covers the pairs of
+earlier runs too. Given the run's summary it counts the run's manifest, as the printed summary and the
+exit code do, and lists the rows of other pair ids apart; without one it counts every row.
 
 The pairs table sorts on a click on a column header (again: reverse). The page also honours a URL
 fragment, e.g. ``report.html#sort=-rot_err_deg&status=failed`` (sort by rotation error, descending,
@@ -511,8 +512,8 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     if others:
         w("<section id=\"other-pairs-section\">\n<h2>Rows of pairs not in this run's manifest</h2>\n")
         w(f"<p class=\"meta\">{len(others)} {_plural(len(others), 'row')} of earlier runs in this folder whose pairs "
-          "this run's manifest does not list (removed since, or another manifest's). Their files are still in "
-          "matrices/ and the CSVs; the summary above does not count them.</p>\n")
+          "this run's manifest does not list (removed since, or another manifest's). They stay in the CSVs (and "
+          "the matrices of ok ones in matrices/); the summary above does not count them.</p>\n")
         w("<div class=\"scroll\">\n<table id=\"other-pairs\">\n<thead><tr><th>snapshot</th>")
         for _key, label, _typ, tip in COLUMNS:
             w(f"<th scope=\"col\" title=\"{_e(tip)}\">{_e(label)}</th>")

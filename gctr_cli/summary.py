@@ -51,6 +51,7 @@ class BatchSummary:
     #: error / target diagonal, scale error), the wrong answers a CI log must name
     misses: tuple[tuple[str, float, float, float], ...] = ()
     pair_ids: tuple[str, ...] = ()  # the manifest's pairs, in its order
+    report_written: bool = False  # OUTDIR/report.html was written of this summary (set by the batch)
 
     @property
     def all_ok(self) -> bool:

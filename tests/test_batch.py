@@ -744,6 +744,81 @@ def test_a_pair_run_again_keeps_no_aligned_cloud_or_snapshot_of_its_earlier_run(
     assert not list((out / "aligned").glob("ply_ply.*")) and not (out / "matrices" / "ply_ply.txt").exists()
 
 
+def test_a_file_gone_for_a_while_keeps_its_stamp(four_pairs, fast_config, tmp_path):
+    """A source archived at one resume (its row kept) and moved back unchanged at the next ran its pair again:
+    the recorded stamp had become ``missing``. A file gone keeps the stamp it had; ``--write-aligned`` does not
+    turn such a pair's ok row into a failed one either."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    src = four_pairs.root / four_pairs.rows[0]["source"]
+    src.rename(tmp_path / "archived.ply")
+    assert run(four_pairs, fast_config, out, workers=1, resume=True, write_aligned=True).n_run == 4  # the others
+    assert by_id(read_csv(out / "transforms.csv")[1])["ply_ply"]["status"] == "ok"
+    (tmp_path / "archived.ply").rename(src)  # the very same file back
+    assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 0
+
+
+def test_a_run_stopped_before_its_first_row_puts_tm_errors_back(four_pairs, fast_config, tmp_path):
+    """A resumed run stopped before it recorded a pair restored transforms.csv but not tm_errors.csv, whose
+    rows of the pairs to run again it had dropped: their ok rows were left without errors rows (counted as no
+    success from then on)."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    before = {name: (out / name).read_bytes() for name in ("transforms.csv", "tm_errors.csv", ".gctr-inputs.csv")}
+    target = four_pairs.root / four_pairs.rows[0]["target"]
+    os.utime(target, ns=(os.stat(target).st_atime_ns, os.stat(target).st_mtime_ns + 10**9))
+
+    def stop(n_todo, n_done):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run(four_pairs, fast_config, out, workers=1, resume=True, on_start=stop)
+    assert {name: (out / name).read_bytes() for name in before} == before
+
+
+def test_a_stale_file_that_cannot_be_removed_is_named_and_the_batch_goes_on(four_pairs, fast_config, tmp_path,
+                                                                           monkeypatch, caplog):
+    """Removing an earlier run's snapshot of a pair run again raised past the pair and stopped the batch
+    (exit 2, blaming transforms.csv); and a snapshot that could not be written left the old "ok" picture."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1, snapshots=True)
+    for row in four_pairs.rows[:2]:
+        target = four_pairs.root / row["target"]
+        os.utime(target, ns=(os.stat(target).st_atime_ns, os.stat(target).st_mtime_ns + 10**9))
+    real_unlink = Path.unlink
+
+    def unlink(self, *args, **kwargs):
+        if self.name == "ply_ply.png":
+            raise PermissionError(13, "Permission denied")
+        return real_unlink(self, *args, **kwargs)
+
+    def no_png(path, data):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "unlink", unlink)
+    monkeypatch.setattr("gctr_cli.snapshots.write_png", no_png)
+    with caplog.at_level("WARNING", logger="gctr_cli.outdir"):
+        summary = run(four_pairs, fast_config, out, workers=1, resume=True, snapshots=True)
+    assert (summary.n_run, summary.n_failed) == (2, 0)
+    assert (f"pair ply_ply: cannot remove {out / 'snapshots' / 'ply_ply.png'} of an earlier run, which does not "
+            "belong to its new row: PermissionError: [Errno 13] Permission denied") in caplog.text
+    assert not (out / "snapshots" / "pcd_xyz.png").exists()  # its old picture went with the failed write
+    assert (out / "snapshots" / "xyz_ply.png").is_file()  # not run again
+
+
+def test_a_damaged_inputs_file_is_named_as_such(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    path = out / ".gctr-inputs.csv"
+    lines = path.read_text().splitlines()
+    lines[2] = "xyz,broken"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(BatchError) as ei:
+        run(four_pairs, fast_config, out, workers=1, resume=True)
+    assert str(ei.value).startswith(f"{path}: line 3 has 2 cells, expected 7: the file was changed after gctr "
+                                    "wrote it")
+
+
 def test_resume_reads_the_inputs_recorded_before_file_stamps(four_pairs, fast_config, tmp_path):
     """An inputs file written before the stamps (four columns) is still read: paths are compared, files
     changed in place are not known, and the run records the stamps from then on."""

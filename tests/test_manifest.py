@@ -359,7 +359,8 @@ def test_build_leaves_an_ambiguous_stem_out_and_pairs_the_rest(folders, caplog):
         (tgt / f"{stem}.xyz").write_text("x")
     with pytest.raises(ManifestError) as ei:
         build_manifest(src, tgt)
-    assert str(ei.value).endswith("; left out as ambiguous (several files with one stem): s01, s02, s03")
+    assert str(ei.value) == (f"no matching file stems between {src} (5 clouds) and {tgt} (6 clouds); left out as "
+                             "ambiguous (several files with one stem): s01, s02, s03")
 
 
 def test_build_skips_stems_that_begin_or_end_with_blank_space(folders, caplog):

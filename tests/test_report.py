@@ -233,6 +233,31 @@ def test_cli_prints_the_report_path(four_pairs, tmp_path, monkeypatch):
     assert f"report: {out}/report.html" in res.stdout
 
 
+def test_cli_prints_no_report_path_when_the_report_was_not_written(four_pairs, tmp_path, monkeypatch):
+    """The summary printed ``report: OUTDIR/report.html`` whenever such a file existed, an earlier run's too."""
+    monkeypatch.setattr(batch, "run_batch", functools.partial(batch.run_batch, register_fn=fake_engine.register))
+    out = tmp_path / "out"
+    args = ["batch", str(four_pairs.manifest()), "-o", str(out), "-j", "1"]
+    assert CliRunner().invoke(cli.main, args, catch_exceptions=False).exit_code == 0
+
+    def no_space(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("gctr_cli.report.write_report", no_space)
+    real_unlink = Path.unlink
+
+    def unlink(self, *a, **k):
+        if self.name == "report.html":
+            raise PermissionError(13, "Permission denied")
+        return real_unlink(self, *a, **k)
+
+    monkeypatch.setattr(Path, "unlink", unlink)
+    res = CliRunner().invoke(cli.main, [*args, "--resume"], catch_exceptions=False)
+    assert res.exit_code == 0 and (out / "report.html").exists()  # the old one could not be removed either
+    assert "report:" not in res.stdout
+    assert "; the earlier one there is out of date" in res.stderr
+
+
 def test_report_problems_never_fail_the_batch(four_pairs, fast_config, tmp_path, monkeypatch, caplog):
     import gctr_cli.report
 
