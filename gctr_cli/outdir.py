@@ -276,13 +276,15 @@ MISSING_STAMP = "missing"
 
 
 def file_stamp(path: str | Path) -> str:
-    """``size:mtime_ns`` of a file, the test ``make`` and ``rsync`` use for "changed since" (``missing``
-    when it cannot be looked up): a file rewritten in place gets another stamp."""
+    """``size:mtime_ns:inode`` of a file (``missing`` when it cannot be looked up): size and time are the
+    test ``make`` and ``rsync`` use for "changed since", so a file rewritten in place gets another stamp;
+    the inode tells a file replaced by another of the same size and time (a symbolic link pointed elsewhere,
+    ``cp -p`` over it)."""
     try:
         st = os.stat(path)
     except OSError:
         return MISSING_STAMP
-    return f"{st.st_size}:{st.st_mtime_ns}"
+    return f"{st.st_size}:{st.st_mtime_ns}:{st.st_ino}"
 
 
 def pair_inputs(pairs: Iterable[Any]) -> Inputs:

@@ -819,6 +819,23 @@ def test_a_damaged_inputs_file_is_named_as_such(four_pairs, fast_config, tmp_pat
                                     "wrote it")
 
 
+def test_a_link_pointed_at_another_file_of_the_same_size_and_time_runs_again(four_pairs, fast_config, tmp_path):
+    """Size and time alone missed a symbolic link pointed at another file with the same size and time (as
+    ``cp -p`` gives); the inode tells them apart."""
+    row = four_pairs.rows[0]
+    real = four_pairs.root / row["source"]
+    link = four_pairs.root / "clouds" / "link.ply"
+    link.symlink_to(real)
+    row["source"] = "clouds/link.ply"
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    copy = tmp_path / "copy.ply"
+    shutil.copy2(real, copy)  # the same bytes, size and modification time, another file
+    link.unlink()
+    link.symlink_to(copy)
+    assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 1
+
+
 def test_resume_reads_the_inputs_recorded_before_file_stamps(four_pairs, fast_config, tmp_path):
     """An inputs file written before the stamps (four columns) is still read: paths are compared, files
     changed in place are not known, and the run records the stamps from then on."""
