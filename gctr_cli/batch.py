@@ -291,7 +291,7 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
         outputs = Outputs(outdir, write_aligned=write_aligned)
         resolved = config.model_copy(update={"batch": config.batch.model_copy(update={"workers": n_workers})})
         atomic_write(outdir / CONFIG_FILE, config_to_yaml(resolved))
-        record_inputs(outdir, inputs)
+        record_inputs(outdir, inputs, kept=done)
         if snapshots:
             (outdir / SNAPSHOTS_DIR).mkdir(exist_ok=True)
         if write_aligned:

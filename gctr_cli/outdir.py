@@ -276,15 +276,17 @@ MISSING_STAMP = "missing"
 
 
 def file_stamp(path: str | Path) -> str:
-    """``size:mtime_ns:inode`` of a file (``missing`` when it cannot be looked up): size and time are the
-    test ``make`` and ``rsync`` use for "changed since", so a file rewritten in place gets another stamp;
-    the inode tells a file replaced by another of the same size and time (a symbolic link pointed elsewhere,
-    ``cp -p`` over it)."""
+    """``size:mtime_ns`` of a file (``missing`` when it cannot be looked up), the test ``make`` and ``rsync``
+    use for "changed since": a file rewritten in place gets another stamp. A path through a symbolic link
+    adds ``:`` and the file it resolves to, so that a link pointed at another file of the same size and
+    time counts as changed (inode numbers would tell that too, but some network shares renumber them on
+    every mount, which would run every pair again)."""
     try:
         st = os.stat(path)
     except OSError:
         return MISSING_STAMP
-    return f"{st.st_size}:{st.st_mtime_ns}:{st.st_ino}"
+    real = os.path.realpath(path)
+    return f"{st.st_size}:{st.st_mtime_ns}" + (f":{real}" if real != os.path.abspath(path) else "")
 
 
 def pair_inputs(pairs: Iterable[Any]) -> Inputs:
@@ -310,15 +312,16 @@ def _read_inputs(path: Path) -> dict[str, dict[str, str]]:
     return {r["pair_id"]: r for r in rows}
 
 
-def record_inputs(outdir: Path, inputs: Inputs) -> None:
+def record_inputs(outdir: Path, inputs: Inputs, kept: set[str] | None = None) -> None:
     """Record ``inputs`` in :data:`INPUTS_FILE` (atomically), keeping the entries of other pair ids (an
-    earlier run with another manifest)."""
+    earlier run with another manifest). A pair of ``kept`` (its earlier row stays) whose file is gone for
+    now keeps the stamp that file had: moved back unchanged, it is the file its row was made of."""
     path = outdir / INPUTS_FILE
     recorded = _read_inputs(path)
     for pid, entry in inputs.items():
         row = dict(zip(INPUTS_COLUMNS, (pid, *entry), strict=True))
-        before = recorded.get(pid, {})
-        for key, _ in _FILE_ROLES:  # a file gone for now keeps the stamp it had (moved back, it is the same)
+        before = recorded.get(pid, {}) if kept and pid in kept else {}
+        for key, _ in _FILE_ROLES:
             if row[f"{key}_stamp"] == MISSING_STAMP and before.get(key) == row[key]:
                 row[f"{key}_stamp"] = before.get(f"{key}_stamp") or MISSING_STAMP
         recorded[pid] = row
@@ -353,8 +356,9 @@ def _changed_inputs(outdir: Path, rows: list[dict[str, str]], with_errors: set[s
             why = [f"{what} {now[key]} changed on disk" for key, what in _FILE_ROLES
                    if now[key] and before.get(f"{key}_stamp") and now[f"{key}_stamp"] != MISSING_STAMP
                    and before[f"{key}_stamp"] != now[f"{key}_stamp"]]
-        if (not why and aligned_wanted and row["status"] == "ok" and now["source_stamp"] != MISSING_STAMP
-                and not aligned_path(outdir, pid, now["source"]).exists()):  # (a source gone: the row stays)
+        gone = any(now[key] and now[f"{key}_stamp"] == MISSING_STAMP for key, _ in _FILE_ROLES)
+        if (not why and aligned_wanted and row["status"] == "ok" and not gone  # (a file gone: the row stays)
+                and not aligned_path(outdir, pid, now["source"]).exists()):
             why.append("no aligned cloud yet (--write-aligned)")
         if why:
             changed[pid] = "; ".join(why)

@@ -758,6 +758,32 @@ def test_a_file_gone_for_a_while_keeps_its_stamp(four_pairs, fast_config, tmp_pa
     assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 0
 
 
+def test_a_pair_that_failed_for_a_file_gone_runs_again_when_it_is_back(four_pairs, fast_config, tmp_path):
+    """A file gone keeps its stamp only for a pair whose earlier row stays: a pair run again while its source
+    was away (failed: file does not exist) runs once more when the same file is back."""
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    row = four_pairs.rows[0]
+    target, src = four_pairs.root / row["target"], four_pairs.root / row["source"]
+    os.utime(target, ns=(os.stat(target).st_atime_ns, os.stat(target).st_mtime_ns + 10**9))
+    src.rename(tmp_path / "away.ply")
+    run(four_pairs, fast_config, out, workers=1, resume=True)
+    assert by_id(read_csv(out / "transforms.csv")[1])["ply_ply"]["message"].endswith("file does not exist")
+    (tmp_path / "away.ply").rename(src)
+    assert run(four_pairs, fast_config, out, workers=1, resume=True).n_run == 1
+    assert by_id(read_csv(out / "transforms.csv")[1])["ply_ply"]["status"] == "ok"
+
+
+def test_write_aligned_keeps_the_row_of_a_pair_whose_target_is_gone(four_pairs, fast_config, tmp_path):
+    out = tmp_path / "out"
+    run(four_pairs, fast_config, out, workers=1)
+    before = by_id(read_csv(out / "tm_errors.csv")[1])["ply_ply"]
+    (four_pairs.root / four_pairs.rows[0]["target"]).rename(tmp_path / "away.ply")
+    assert run(four_pairs, fast_config, out, workers=1, resume=True, write_aligned=True).n_run == 4  # the others
+    assert by_id(read_csv(out / "transforms.csv")[1])["ply_ply"]["status"] == "ok"
+    assert by_id(read_csv(out / "tm_errors.csv")[1])["ply_ply"] == before
+
+
 def test_a_run_stopped_before_its_first_row_puts_tm_errors_back(four_pairs, fast_config, tmp_path):
     """A resumed run stopped before it recorded a pair restored transforms.csv but not tm_errors.csv, whose
     rows of the pairs to run again it had dropped: their ok rows were left without errors rows (counted as no
