@@ -532,8 +532,7 @@ class Outputs:
         transforms_row = outcome.transforms_row  # formatted first: a bad value fails before any write
         errors_row = outcome.errors_row
         matrix = self.outdir / MATRICES_DIR / f"{outcome.pair_id}.txt"
-        aligned_file = aligned_path(self.outdir, outcome.pair_id, outcome.source)
-        aligned = aligned_file if self.write_aligned else None
+        aligned = aligned_path(self.outdir, outcome.pair_id, outcome.source) if self.write_aligned else None
         errors_size = self.errors.size()
         # a row never stands beside a file of an earlier run of its pair id (one that --resume runs again
         # because its inputs changed): a failed row beside no matrix, and no aligned cloud or snapshot

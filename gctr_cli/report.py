@@ -375,19 +375,15 @@ def _load_config(outdir: Path) -> Any:
         return None
 
 
-def _summary_from_rows(outdir: Path, rows: Sequence[dict[str, str]], err_ids: set[str], run: Any = None) -> Any:
-    """The summary of every row of the folder: a pair has ground truth when it has an errors row or its
-    recorded inputs (``.gctr-inputs.csv``) name one. ``run``: the summary of the run that writes the
-    report, whose time and counts of pairs run are kept."""
+def _summary_from_rows(outdir: Path, rows: Sequence[dict[str, str]], err_ids: set[str]) -> Any:
+    """The summary of every row of the folder (no run's manifest known): a pair has ground truth when it has
+    an errors row or its recorded inputs (``.gctr-inputs.csv``) name one."""
     from gctr_cli.outdir import INPUTS_FILE
     from gctr_cli.summary import summarize
 
     with_gt = err_ids | {r["pair_id"] for r in _read_csv(outdir / INPUTS_FILE) if r.get("gt")}
     pairs = [SimpleNamespace(pair_id=r["pair_id"], gt=True if r["pair_id"] in with_gt else None) for r in rows]
-    if run is None:
-        return summarize(pairs, outdir)
-    return summarize(pairs, outdir, wall_time_s=run.wall_time_s, n_run=run.n_run,
-                     n_resumed=len(rows) - run.n_run)
+    return summarize(pairs, outdir)
 
 
 def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None) -> str:
@@ -406,8 +402,8 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     if config is None:
         config = _load_config(outdir)
     others: list[dict[str, str]] = []
-    if summary is None or not summary.pair_ids:
-        summary = _summary_from_rows(outdir, rows, set(errs), summary)  # no manifest known: every row
+    if summary is None:
+        summary = _summary_from_rows(outdir, rows, set(errs))  # no manifest known: every row
     else:
         # the run's manifest is what the cards, the plots and the exit code count; rows of other pair ids
         # (earlier runs with another manifest: pairs since removed) are listed apart, not counted

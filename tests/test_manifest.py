@@ -241,6 +241,14 @@ def test_write_rejects_bad_pairs(tmp_path, pairs, keyword):
 # ----------------------------------------------------------------------------------------------------
 
 
+def empty_folders(tmp_path: Path) -> tuple[Path, Path]:
+    """Two new empty folders ``a`` (source) and ``b`` (target) under ``tmp_path``."""
+    src, tgt = tmp_path / "a", tmp_path / "b"
+    src.mkdir()
+    tgt.mkdir()
+    return src, tgt
+
+
 @pytest.fixture
 def folders(tmp_path):
     src, tgt, gt = tmp_path / "src", tmp_path / "tgt", tmp_path / "gt"
@@ -286,9 +294,7 @@ def test_build_then_write_then_read(folders, tmp_path):
 
 
 def test_build_no_match(tmp_path):
-    src, tgt = tmp_path / "a", tmp_path / "b"
-    src.mkdir()
-    tgt.mkdir()
+    src, tgt = empty_folders(tmp_path)
     (src / "one.ply").write_text("x")
     (tgt / "two.ply").write_text("x")
     with pytest.raises(ManifestError) as ei:
@@ -326,9 +332,7 @@ def test_csv_files_are_not_taken_for_clouds_by_folder_pairing(folders):
 
 
 def test_left_out_csv_files_are_named_where_they_would_have_paired(tmp_path, caplog):
-    src, tgt = tmp_path / "a", tmp_path / "b"
-    src.mkdir()
-    tgt.mkdir()
+    src, tgt = empty_folders(tmp_path)
     for d in (src, tgt):
         (d / "r1.csv").write_text("x")
     with pytest.raises(ManifestError) as ei:
@@ -388,9 +392,7 @@ def test_build_missing_folders_and_same_folder(folders, tmp_path):
 
 
 def test_build_skips_unsafe_stems(tmp_path, caplog):
-    src, tgt = tmp_path / "a", tmp_path / "b"
-    src.mkdir()
-    tgt.mkdir()
+    src, tgt = empty_folders(tmp_path)
     for d in (src, tgt):
         (d / "good.ply").write_text("x")
         (d / "bad..name.ply").write_text("x")
