@@ -546,8 +546,10 @@ def test_a_mirrored_cloud_is_refused():
     assert row["refusal"] == "mirrored"
     assert row["score"] == pytest.approx(0.139, abs=2e-3) and row["mirror_score"] == pytest.approx(0.519, abs=2e-3)
     assert row["message"] == ("mirrored: the source reflected (x -> -x) fits the target better than any rotation of "
-                              "it (score 0.52 against 0.14); one of the clouds has a flipped axis (a left-handed "
-                              "coordinate system?): flip it and register again")
+                              "it (score 0.52 against 0.14); either one of the clouds has a flipped axis (a "
+                              "left-handed coordinate system? flip it and register again), or the clouds share too "
+                              "little of a nearly mirror-symmetric shape to be registered (a flipped copy would fit "
+                              "and be just as wrong)")
     assert _probe("mirrored", "dragon", 2000, 0.002, 0, 0, mirror_below=0.0,
                   reflection_check=False)["outcome"] == "silent wrong"
 
@@ -562,8 +564,10 @@ def test_a_mirror_image_that_fits_well_is_refused_by_the_reflection_check():
     assert row["message"].startswith("mirrored: the source reflected fits the target better than any rotation of "
                                      "it (score 0.7")
     assert row["message"].endswith(" against 0.40, the answer reflected through a principal plane of a cloud and "
-                                   "refined); one of the clouds has a flipped axis (a left-handed coordinate "
-                                   "system?): flip it and register again")
+                                   "refined); either one of the clouds has a flipped axis (a left-handed coordinate "
+                                   "system? flip it and register again), or the clouds share too little of a nearly "
+                                   "mirror-symmetric shape to be registered (a flipped copy would fit and be just as "
+                                   "wrong)")
     unchecked = _probe("mirrored", "bunny", 8000, 0.002, 0, 0, reflection_check=False)
     assert unchecked["outcome"] == "silent wrong" and unchecked["confidence"] == 1.0
 

@@ -124,6 +124,12 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
 NEAR_BOUND = 1.25
 #: how far beyond a bound the unbounded refinement may end before the answer counts as held there
 BOUND_TOLERANCE = 0.005
+#: the end of a ``mirrored`` refusal: a flipped axis is one cause; the other is a nearly mirror-symmetric shape
+#: seen from two sides that barely overlap (raw bunny scans 180 and 45 degrees apart), where a flipped copy
+#: fits at confidence 1 and is just as wrong
+MIRROR_ADVICE = ("; either one of the clouds has a flipped axis (a left-handed coordinate system? flip it and "
+                 "register again), or the clouds share too little of a nearly mirror-symmetric shape to be "
+                 "registered (a flipped copy would fit and be just as wrong)")
 
 
 def register(source: np.ndarray, target: np.ndarray, config: EngineConfig | Config | None = None, seed: int = 0, *,
@@ -301,8 +307,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
             status, refusal, message = "failed", "mirrored", (
                 f"mirrored: the source reflected fits the target better than any rotation of it (score "
                 f"{reflected:.2f} against {answer_score:.2f}, the answer reflected through a principal plane of a "
-                "cloud and refined); one of the clouds has a flipped axis (a left-handed coordinate system?): "
-                "flip it and register again")
+                f"cloud and refined){MIRROR_ADVICE}")
     if status == "ok" and confirm and verdict.score < cfg.verdict.mirror_below:
         # A mirror image (a cloud with a flipped axis) has no right rotation, but the best one can stand out
         # among the other poor ones (confidence 1 on a mirrored bunny): is the source's reflection a better fit?
@@ -316,8 +321,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         if mirrored.status == "ok" and mirror["mirror_score"] - verdict.score >= cfg.verdict.mirror_margin:
             status, refusal, message = "failed", "mirrored", (
                 f"mirrored: the source reflected (x -> -x) fits the target better than any rotation of it (score "
-                f"{mirror['mirror_score']:.2f} against {verdict.score:.2f}); one of the clouds has a flipped axis "
-                "(a left-handed coordinate system?): flip it and register again")
+                f"{mirror['mirror_score']:.2f} against {verdict.score:.2f}){MIRROR_ADVICE}")
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,
