@@ -158,7 +158,7 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
     """:func:`run_pair` without the snapshot; the loaded clouds are left in ``clouds``."""
     from gctr_cli.geometry import robust_core
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
-    from gctr_cli.metrics import is_similarity, transform_errors
+    from gctr_cli.metrics import GT_ORTHOGONALITY_TOL, is_similarity, transform_errors
 
     if seed is None:
         seed = derive_seed(config.seed, spec.pair_id)
@@ -178,7 +178,7 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
     if spec.gt is not None:
         try:
             T_gt = read_matrix(spec.gt)
-            ok, reason = is_similarity(T_gt)
+            ok, reason = is_similarity(T_gt, orthogonality_tol=GT_ORTHOGONALITY_TOL)
             if not ok:
                 raise MatrixError(f"{spec.gt}: not a similarity transform: {reason}")
         except MatrixError as exc:
