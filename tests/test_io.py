@@ -23,6 +23,7 @@ from gctr_cli.io import (
     save_point_cloud,
     write_matrix,
 )
+from gctr_cli.io.cloud import COARSE_STEP_MIN_POINTS, coarse_step_note
 
 DATA = Path("/work/shared/data")
 BUN000 = DATA / "stanford/bunny/scans/bun000.ply"
@@ -1079,3 +1080,46 @@ def test_write_matrix_validation(tmp_path):
     assert not path.exists()
     write_matrix(tmp_path / "nested" / "dir" / "m.txt", np.eye(4))
     assert (tmp_path / "nested" / "dir" / "m.txt").read_text() == "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"
+
+
+# ----------------------------------------------------------------------------------------------------
+# coordinates stored too coarsely for the cloud's size: a warning naming the file, the step and the cause
+# ----------------------------------------------------------------------------------------------------
+
+
+def _float32_ply(path: Path, points: np.ndarray) -> None:
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+              "property float x\nproperty float y\nproperty float z\nend_header\n").encode()
+    path.write_bytes(header + points.astype("<f4").tobytes())
+
+
+def test_a_float32_cloud_at_utm_coordinates_is_read_with_a_warning_naming_float32(tmp_path, caplog):
+    """A 0.5 m object 4.7 million metres from the origin, exported as float32 (the commonest mistake with
+    georeferenced data): y keeps 0.5 m steps. The cloud is read (it is a valid file), with a warning that
+    names the step, its share of the cloud's size and the cause."""
+    bunny = load_point_cloud(Path(__file__).parents[1] / "data" / "models" / "bunny.ply")
+    path = tmp_path / "utm32.ply"
+    _float32_ply(path, bunny * 3 + [512345.0, 4678901.0, 250.0])
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        points = load_point_cloud(path)
+    assert len(points) == len(bunny)
+    [warning] = [r.getMessage() for r in caplog.records if "steps of" in r.getMessage()]
+    assert warning.startswith(f"{path}: coordinates are stored in steps of 0.5 along y, ")
+    assert "float32 values as far from the origin as 4.6789e+06 keep no finer steps" in warning
+
+
+def test_a_coarse_las_like_quantum_is_told_and_fine_or_continuous_coordinates_are_not():
+    """1 cm steps on a 15 cm object (a LAS scale of 0.01) are 4% of its size: told, with the file's digits as
+    the cause. A 1 mm quantum on a 100 m scan, float64 coordinates and a few hundred random points
+    (whose gaps are wide by chance) are not."""
+    rng = np.random.default_rng(3)
+    bunny = load_point_cloud(Path(__file__).parents[1] / "data" / "models" / "bunny.ply")
+    note = coarse_step_note(np.round(bunny, 2))
+    assert note is not None and note.startswith("coordinates are stored in steps of 0.01 along ")
+    assert note.endswith("the file keeps no more digits (a LAS scale factor, a text export's decimals, "
+                         "integer units?)")
+    assert coarse_step_note(bunny) is None
+    assert coarse_step_note(np.round(rng.uniform(0, 100, size=(50_000, 3)), 3)) is None
+    assert coarse_step_note(rng.uniform(0, 1, size=(COARSE_STEP_MIN_POINTS, 3))) is None
+    flat = np.c_[rng.uniform(0, 1, size=(1000, 2)), np.zeros(1000)]  # a flat axis has no step to see
+    assert coarse_step_note(flat) is None

@@ -23,6 +23,16 @@ NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"),
                 ("normals_0", "normals_1", "normals_2"))  # a LAS extra dimension 'normals' of 3 elements
 
 
+#: coordinates stored in steps coarser than this share of the cloud's bounding-box diagonal get a warning:
+#: finer than the engine's working resolution (about 1% of the cloud) they cost nothing, coarser they pin
+#: the precision (float32 at UTM-size coordinates keeps 0.5 m steps; a LAS scale of 0.01 on a 15 cm object)
+COARSE_STEP_RATIO = 2e-3
+#: fewer points than this are not checked: a few random values have gaps near that ratio by chance
+COARSE_STEP_MIN_POINTS = 200
+#: the step is measured on at most this many points (every k-th): a sample of quantised values still shows
+#: the quantum, while continuous values show gaps far below the ratio
+COARSE_STEP_SAMPLE = 200_000
+
 #: ``extra`` of a reader's warning that concerns an attribute (read only with ``attributes=True``)
 ATTRIBUTE_NOTE = {"gctr_attribute_note": True}
 
@@ -106,7 +116,39 @@ def validate_cloud(cloud: PointCloud, path: Path, min_points: int, degenerate_ok
         _check_shape(pts, path, dropped)
     if n_bad:
         logger.warning("%s: dropped %d of %d points with non-finite (NaN/inf) coordinates", clean(path), n_bad, n_total)
+    note = coarse_step_note(pts)
+    if note:
+        logger.warning("%s: %s", clean(path), note)
     return cloud
+
+
+def coarse_step_note(points: np.ndarray) -> str | None:
+    """Why the stored coordinates limit the registration's precision, or None: along some axis the values
+    take steps coarser than :data:`COARSE_STEP_RATIO` of the bounding-box diagonal (the smallest gap between
+    distinct values of a sample), with the likely cause."""
+    n = len(points)
+    if n < COARSE_STEP_MIN_POINTS:
+        return None
+    sample = points[:: max(1, n // COARSE_STEP_SAMPLE)]
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
+    if not diagonal > 0:
+        return None
+    steps = []
+    for axis in range(3):
+        gaps = np.diff(np.unique(sample[:, axis]))
+        steps.append(float(gaps.min()) if len(gaps) else 0.0)  # one value: a flat axis, no step to see
+    axis = int(np.argmax(steps))
+    step = steps[axis]
+    if step <= COARSE_STEP_RATIO * diagonal:
+        return None
+    far = float(np.abs(points[:, axis]).max())
+    if float(np.spacing(np.float32(far))) >= 0.5 * step:
+        cause = (f"float32 values as far from the origin as {far:.6g} keep no finer steps: store the coordinates "
+                 "as float64, or subtract an offset before exporting")
+    else:
+        cause = "the file keeps no more digits (a LAS scale factor, a text export's decimals, integer units?)"
+    return (f"coordinates are stored in steps of {step:.3g} along {'xyz'[axis]}, {step / diagonal:.2g} of the "
+            f"cloud's size {diagonal:.3g}: the registration cannot be more precise than that; {cause}")
 
 
 def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> None:
