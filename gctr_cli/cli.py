@@ -766,7 +766,8 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
 @main.command()
 @click.argument("source_dir", type=_Path(path_type=Path))
 @click.argument("target_dir", type=_Path(path_type=Path))
-@click.option("--gt-dir", type=_Path(path_type=Path), help="Folder of ground-truth matrices named <stem>.txt.")
+@click.option("--gt-dir", type=_Path(path_type=Path),
+              help="Folder of ground-truth matrices named <stem>.txt (or .TXT).")
 @click.option("-o", "--output", required=True, type=_Path(dir_okay=False, path_type=Path),
               help="Manifest CSV to write.")
 @verbose_option

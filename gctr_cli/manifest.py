@@ -283,6 +283,16 @@ def _nested_clouds(folder: Path) -> list[str]:
     return nested
 
 
+def _gt_files_by_stem(gt_dir: Path) -> dict[str, Path]:
+    """The ground-truth files of ``gt_dir`` by stem: ``<stem>.txt``, the extension in any case (``a.TXT``,
+    as clouds' extensions are); of ``a.txt`` beside ``a.TXT`` (a case-sensitive file system), ``a.txt``."""
+    found: dict[str, Path] = {}
+    for f in sorted(gt_dir.iterdir(), key=lambda f: f.suffix != ".txt"):  # the exact ".txt" first
+        if f.suffix.lower() == ".txt" and not f.name.startswith(".") and f.is_file():
+            found.setdefault(f.stem, f)
+    return found
+
+
 def build_manifest(
     source_dir: str | Path, target_dir: str | Path, gt_dir: str | Path | None = None
 ) -> list[PairSpec]:
@@ -290,7 +300,7 @@ def build_manifest(
 
     Only files with a point-cloud extension are considered (:data:`FOLDER_EXTENSIONS`: not ``.csv``;
     hidden files are ignored); ``pair_id`` is the
-    stem, and the ground truth is ``<gt_dir>/<stem>.txt`` when that file exists. Pairs are sorted by
+    stem, and the ground truth is ``<gt_dir>/<stem>.txt`` (or ``.TXT``) when that file exists. Pairs are sorted by
     ``pair_id``. Stems present on one side only are logged as a warning; stems unsafe as a pair_id are
     skipped with a warning, and so are stems held by several clouds of one folder (``a.ply`` beside
     ``a.laz``). Raises :class:`ManifestError` if a folder is missing or no stem matches.
@@ -345,12 +355,12 @@ def build_manifest(
 
     pairs = []
     missing_gt = []
+    gts = _gt_files_by_stem(Path(gt_dir)) if gt_dir is not None else {}
     for stem in common:
         gt = None
         if gt_dir is not None:
-            cand = Path(gt_dir) / f"{stem}.txt"
-            if cand.is_file():
-                gt = _absolute(cand)
+            if stem in gts:
+                gt = _absolute(gts[stem])
             else:
                 missing_gt.append(stem)
         pairs.append(PairSpec(stem, src[stem], tgt[stem], gt))
@@ -358,8 +368,7 @@ def build_manifest(
         logger.warning("%d pair(s) have no ground truth in %s: %s", len(missing_gt), gt_dir, _listing(missing_gt))
     if gt_dir is not None:
         paired = set(common)
-        unused = sorted(f.name for f in Path(gt_dir).iterdir()
-                        if f.suffix == ".txt" and not f.name.startswith(".") and f.stem not in paired)
+        unused = sorted(path.name for stem, path in gts.items() if stem not in paired)
         if unused:
             logger.warning("%d ground-truth file(s) in %s match no pair: %s", len(unused), gt_dir, _listing(unused))
     return pairs
