@@ -23,7 +23,7 @@ from gctr_cli.io import (
     save_point_cloud,
     write_matrix,
 )
-from gctr_cli.io.cloud import COARSE_STEP_MIN_POINTS, coarse_step_note
+from gctr_cli.io.cloud import COARSE_STEP_MIN_POINTS, COARSE_STEP_SAMPLE, coarse_step_note
 
 DATA = Path("/work/shared/data")
 BUN000 = DATA / "stanford/bunny/scans/bun000.ply"
@@ -1110,8 +1110,8 @@ def test_a_float32_cloud_at_utm_coordinates_is_read_with_a_warning_naming_float3
 
 def test_a_coarse_las_like_quantum_is_told_and_fine_or_continuous_coordinates_are_not():
     """1 cm steps on a 15 cm object (a LAS scale of 0.01) are 4% of its size: told, with the file's digits as
-    the cause. A 1 mm quantum on a 100 m scan, float64 coordinates and a few hundred random points
-    (whose gaps are wide by chance) are not."""
+    the cause. A 1 mm quantum on a 100 m scan or on the bunny, float64 coordinates and a few hundred random
+    points (whose gaps are wide by chance) are not."""
     rng = np.random.default_rng(3)
     bunny = load_point_cloud(Path(__file__).parents[1] / "data" / "models" / "bunny.ply")
     note = coarse_step_note(np.round(bunny, 2))
@@ -1123,3 +1123,21 @@ def test_a_coarse_las_like_quantum_is_told_and_fine_or_continuous_coordinates_ar
     assert coarse_step_note(rng.uniform(0, 1, size=(COARSE_STEP_MIN_POINTS, 3))) is None
     flat = np.c_[rng.uniform(0, 1, size=(1000, 2)), np.zeros(1000)]  # a flat axis has no step to see
     assert coarse_step_note(flat) is None
+    assert coarse_step_note(np.round(bunny, 3)) is None  # 0.4% of its size: registers as well as float64
+
+
+def test_a_coarse_step_is_a_lattice_of_the_core_and_not_a_few_levels_or_a_grid_sampled_unevenly():
+    """Two exact levels (a floor and a table top) are no lattice; a row-major 1 m grid of 1000 x 1000 points
+    (sampled beyond COARSE_STEP_SAMPLE) is fine at 0.07% of its size, whatever the sample; a stray 0 0 0
+    does not hide 0.5 m float32 steps of a cloud 4.7 million metres from the origin."""
+    rng = np.random.default_rng(5)
+    floor = np.c_[rng.uniform(0, 5, size=(6000, 2)), np.repeat([0.0, 0.75], 3000)]
+    assert coarse_step_note(floor) is None
+    g = np.arange(1000.0)
+    x, y = np.meshgrid(g, g)
+    grid = np.c_[x.ravel(), y.ravel(), 5 * np.sin(x.ravel() / 30) + rng.normal(0, 0.1, x.size)]
+    assert len(grid) > COARSE_STEP_SAMPLE and coarse_step_note(grid) is None
+    bunny = load_point_cloud(Path(__file__).parents[1] / "data" / "models" / "bunny.ply")
+    utm = (bunny * 3 + [512345.0, 4678901.0, 250.0]).astype(np.float32).astype(np.float64)
+    note = coarse_step_note(np.vstack([utm, [0.0, 0.0, 0.0]]))
+    assert note is not None and note.startswith("coordinates are stored in steps of 0.5 along y, ")
