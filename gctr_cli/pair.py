@@ -158,7 +158,14 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
     """:func:`run_pair` without the snapshot; the loaded clouds are left in ``clouds``."""
     from gctr_cli.geometry import robust_core
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
-    from gctr_cli.metrics import GT_ORTHOGONALITY_TOL, is_similarity, transform_errors
+    from gctr_cli.metrics import (
+        GT_ORTHOGONALITY_TOL,
+        STRICT_ORTHOGONALITY_TOL,
+        is_similarity,
+        nearest_similarity,
+        orthogonality_deviation,
+        transform_errors,
+    )
 
     if seed is None:
         seed = derive_seed(config.seed, spec.pair_id)
@@ -181,6 +188,12 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
             ok, reason = is_similarity(T_gt, orthogonality_tol=GT_ORTHOGONALITY_TOL)
             if not ok:
                 raise MatrixError(f"{spec.gt}: not a similarity transform: {reason}")
+            deviation = orthogonality_deviation(T_gt)
+            if deviation > STRICT_ORTHOGONALITY_TOL:  # rounded, or slightly stretched: measure against the nearest
+                logger.warning("ground truth %s: not exactly a similarity (R·Rᵀ differs from the identity by up to "
+                               "%.2g; rounded?): errors are measured against the nearest similarity", spec.gt,
+                               deviation)
+                T_gt = nearest_similarity(T_gt)
         except MatrixError as exc:
             return failed_outcome(spec, seed, f"ground truth {exc}", "ground_truth", NOT_RUN)
         except Exception as exc:  # noqa: BLE001

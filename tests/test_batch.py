@@ -34,7 +34,7 @@ from gctr_cli.batch import (
 from gctr_cli.config import config_from_dict, load_config
 from gctr_cli.geometry import apply
 from gctr_cli.io import load_point_cloud, read_matrix, write_matrix
-from gctr_cli.metrics import transform_errors
+from gctr_cli.metrics import orthogonality_deviation, transform_errors
 
 
 def run(ds, config, outdir, **kw):
@@ -117,6 +117,28 @@ def test_a_stray_far_point_does_not_turn_a_wrong_matrix_into_a_success(four_pair
     for tgt in (spec.target, stray):
         out = run_pair(PairSpec("p", spec.source, tgt, tmp_path / "wrong.txt"), fast_config, fake_engine.register)
         assert out.ok and out.success is False and out.errors.trans_err_rel > 0.25, (tgt, out.errors)
+
+
+def test_a_rounded_ground_truth_is_measured_as_its_nearest_similarity_with_a_warning(four_pairs, fast_config,
+                                                                                       tmp_path, caplog):
+    """A ground truth printed with two decimals is off a similarity by a few thousandths: accepted, measured
+    against its nearest similarity (the errors stay those of the exact matrix, to rounding), and told."""
+    import logging
+
+    from gctr_cli.manifest import PairSpec
+
+    spec = {s.pair_id: s for s in four_pairs.specs()}["pcd_xyz"]
+    exact = four_pairs.gt["pcd_xyz"]
+    rounded = tmp_path / "rounded.txt"
+    rounded.write_text("\n".join(" ".join(f"{v:.2f}" for v in row) for row in exact) + "\n")
+    assert 1e-3 < orthogonality_deviation(read_matrix(rounded)) < 1e-2
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.pair"):
+        out = run_pair(PairSpec("p", spec.source, spec.target, rounded), fast_config, fake_engine.register)
+    assert out.ok and out.success is True
+    assert out.errors.rot_err_deg < 0.5 and out.errors.scale_err < 0.01
+    [warning] = [r.getMessage() for r in caplog.records if "not exactly a similarity" in r.getMessage()]
+    assert warning.startswith(f"ground truth {rounded}: not exactly a similarity (R·Rᵀ differs from the identity")
+    assert warning.endswith("; rounded?): errors are measured against the nearest similarity")
 
 
 @pytest.mark.parametrize(
