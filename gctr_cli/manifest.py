@@ -285,11 +285,19 @@ def _nested_clouds(folder: Path) -> list[str]:
 
 def _gt_files_by_stem(gt_dir: Path) -> dict[str, Path]:
     """The ground-truth files of ``gt_dir`` by stem: ``<stem>.txt``, the extension in any case (``a.TXT``,
-    as clouds' extensions are); of ``a.txt`` beside ``a.TXT`` (a case-sensitive file system), ``a.txt``."""
+    as clouds' extensions are). Of several for one stem (``a.txt`` beside ``a.TXT`` on a case-sensitive
+    file system) the exact ``.txt`` is taken, else the first by name, and the others are named in a warning."""
     found: dict[str, Path] = {}
-    for f in sorted(gt_dir.iterdir(), key=lambda f: f.suffix != ".txt"):  # the exact ".txt" first
+    ignored: list[str] = []
+    for f in sorted(gt_dir.iterdir(), key=lambda f: (f.suffix != ".txt", f.name)):  # the exact ".txt" first
         if f.suffix.lower() == ".txt" and not f.name.startswith(".") and f.is_file():
-            found.setdefault(f.stem, f)
+            if f.stem in found:
+                ignored.append(f"{f.name} (beside {found[f.stem].name})")
+            else:
+                found[f.stem] = f
+    if ignored:
+        logger.warning("%d ground-truth file(s) in %s ignored, their stem has one already: %s", len(ignored),
+                       gt_dir, _listing(ignored))
     return found
 
 

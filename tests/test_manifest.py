@@ -278,14 +278,18 @@ def test_build_matches_stems(folders, caplog):
     assert f"1 ground-truth file(s) in {gt} match no pair: unused.txt" in text
 
 
-def test_a_ground_truth_extension_in_capitals_pairs_as_a_cloud_extension_does(folders):
+def test_a_ground_truth_extension_in_capitals_pairs_as_a_cloud_extension_does(folders, caplog):
     """``s02.TXT`` is ``s02``'s ground truth, as ``s02.PCD`` is its source; beside ``s01.txt`` an
-    ``s01.TXT`` (a case-sensitive file system) loses to the exact name."""
+    ``s01.TXT`` (a case-sensitive file system) loses to the exact name, with a warning."""
     src, tgt, gt = folders
     (gt / "s02.TXT").write_text("x")
     (gt / "s01.TXT").write_text("x")
-    pairs = build_manifest(src, tgt, gt)
+    (gt / "s03.Txt").write_text("x")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        pairs = build_manifest(src, tgt, gt)
     assert [p.gt for p in pairs] == [gt / "s01.txt", gt / "s02.TXT", gt / "s03.txt"]
+    assert (f"2 ground-truth file(s) in {gt} ignored, their stem has one already: s01.TXT (beside s01.txt), "
+            "s03.Txt (beside s03.txt)") in caplog.text
 
 
 def test_build_without_gt(folders):
