@@ -585,6 +585,21 @@ def test_las_writer_stretches_unit_float_intensity_and_never_wraps(tmp_path, cap
         f"{out}: attributes not written (not numeric): label"])  # said for every format (write_point_cloud)
 
 
+def test_a_pts_intensity_is_shifted_into_las_range_with_a_warning(tmp_path, caplog):
+    """Leica's PTS intensity runs -2048..2047; written to LAS it was dropped whole ("holds a value LAS
+    dimension 'intensity' cannot (-1683 ...)"). Now it becomes (value + 2048) x 16, 0..65520, and is told."""
+    pts = np.random.default_rng(3).normal(size=(12, 3))
+    (tmp_path / "scan.pts").write_text("12\n" + "".join(f"{x} {y} {z} {i}\n" for (x, y, z), i in
+                                                        zip(pts, [-2048, -1683, -1, 0, 5, 2047] * 2, strict=True)))
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(tmp_path / "scan.las", read_point_cloud(tmp_path / "scan.pts"))
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / "scan.las").attributes["intensity"],
+                                  [0, 365 * 16, 2047 * 16, 2048 * 16, 2053 * 16, 65520] * 2)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'scan.las'}: intensity -2048..2047 (the PTS convention) written as (value + 2048) x 16, "
+        "LAS's 0..65535"]
+
+
 @pytest.mark.parametrize("ext", [".xyz", ".pts", ".txt"])
 def test_text_writers_round_trip_exactly_with_attribute_columns(tmp_path, rich_cloud, ext):
     write_point_cloud(tmp_path / f"out{ext}", rich_cloud)
