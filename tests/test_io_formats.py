@@ -587,17 +587,26 @@ def test_las_writer_stretches_unit_float_intensity_and_never_wraps(tmp_path, cap
 
 def test_a_pts_intensity_is_shifted_into_las_range_with_a_warning(tmp_path, caplog):
     """Leica's PTS intensity runs -2048..2047; written to LAS it was dropped whole ("holds a value LAS
-    dimension 'intensity' cannot (-1683 ...)"). Now it becomes (value + 2048) x 16, 0..65520, and is told."""
+    dimension 'intensity' cannot (-1683 ...)"). Now a .pts file's intensity becomes (value + 2048) x 16,
+    0..65520, told — every value, so that a scan with no negative value maps as its siblings do. Another
+    file's negative intensities are no PTS values: dropped, as before."""
     pts = np.random.default_rng(3).normal(size=(12, 3))
-    (tmp_path / "scan.pts").write_text("12\n" + "".join(f"{x} {y} {z} {i}\n" for (x, y, z), i in
-                                                        zip(pts, [-2048, -1683, -1, 0, 5, 2047] * 2, strict=True)))
     caplog.set_level("WARNING", logger="gctr_cli.io")
-    write_point_cloud(tmp_path / "scan.las", read_point_cloud(tmp_path / "scan.pts"))
-    np.testing.assert_array_equal(read_point_cloud(tmp_path / "scan.las").attributes["intensity"],
-                                  [0, 365 * 16, 2047 * 16, 2048 * 16, 2053 * 16, 65520] * 2)
+    for name, values in (("dark", [-2048, -1683, -1, 0, 5, 2047] * 2), ("bright", [0, 5, 100, 2047] * 3)):
+        (tmp_path / f"{name}.pts").write_text("12\n" + "".join(f"{x} {y} {z} {i}\n" for (x, y, z), i in
+                                                                zip(pts, values, strict=True)))
+        write_point_cloud(tmp_path / f"{name}.las", read_point_cloud(tmp_path / f"{name}.pts"))
+        np.testing.assert_array_equal(read_point_cloud(tmp_path / f"{name}.las").attributes["intensity"],
+                                      (np.array(values) + 2048) * 16)
     assert [r.getMessage() for r in caplog.records] == [
-        f"{tmp_path / 'scan.las'}: intensity -2048..2047 (the PTS convention) written as (value + 2048) x 16, "
-        "LAS's 0..65535"]
+        f"{tmp_path / name}.las: intensity -2048..2047 (the PTS convention) written as (value + 2048) x 16, "
+        "LAS's 0..65535" for name in ("dark", "bright")]
+    caplog.clear()
+    (tmp_path / "other.xyz").write_text("# x y z intensity\n" + "".join(
+        f"{x} {y} {z} {i}\n" for (x, y, z), i in zip(pts, [-3, -2, -1, 0, 1, 2] * 2, strict=True)))
+    write_point_cloud(tmp_path / "other.las", read_point_cloud(tmp_path / "other.xyz"))
+    assert not read_point_cloud(tmp_path / "other.las").attributes["intensity"].any()
+    assert "holds a value LAS dimension 'intensity' cannot (-3;" in caplog.text
 
 
 @pytest.mark.parametrize("ext", [".xyz", ".pts", ".txt"])

@@ -414,16 +414,17 @@ def _source_scales_offsets(pts: np.ndarray, source: Any, transform: np.ndarray) 
     return out
 
 
-#: the range of a Leica PTS intensity
+#: the range of a Leica PTS intensity (a cloud read from a ``.pts`` file has ``meta["pts_intensity"]``)
 PTS_INTENSITY = (-2048, 2047)
 
 
-def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str) -> np.ndarray | None:
+def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str, pts: bool = False) -> np.ndarray | None:
     """``values`` as LAS dimension ``dim`` holds them, or None (with a warning naming the file
     ``where`` and the attribute) when they do not fit: laspy would wrap 70000 to 4464 and truncate
     0.37 to 0 without a word. A float intensity in [0, 1] (E57's and Open3D's convention) is
-    stretched to LAS's 0..65535; whole numbers in -2048..2047 with some below 0 (Leica's PTS convention)
-    are shifted and stretched to 0..65520, with a warning."""
+    stretched to LAS's 0..65535; the intensity of a ``.pts`` file (``pts``), whole numbers in -2048..2047 by
+    Leica's convention, is shifted and stretched to 0..65520 (every value, whatever its sign: scans of one
+    project keep one mapping), with a warning."""
     if values.dtype.kind not in "fiub":
         logger.warning("%s: attribute %r is not numeric; LAS dimension %r not written", where, name, name)
         return None
@@ -432,8 +433,7 @@ def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str) -> np.nd
     if (name == "intensity" and values.dtype.kind == "f" and len(values) and np.isfinite(values).all()
             and values.min() >= 0.0 and values.max() <= 1.0):
         return np.round(values.astype(np.float64) * dim.max).astype(np.uint16)
-    if (name == "intensity" and len(values) and integer_misfit(values, *PTS_INTENSITY) is None
-            and values.min() < 0):
+    if pts and name == "intensity" and len(values) and integer_misfit(values, *PTS_INTENSITY) is None:
         logger.warning("%s: intensity -2048..2047 (the PTS convention) written as (value + 2048) x 16, "
                        "LAS's 0..65535", where)
         return ((values.astype(np.int64) - PTS_INTENSITY[0]) * 16).astype(np.uint16)
@@ -644,7 +644,8 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
         if k in standard:
             if k in _RGB and v.dtype == np.uint8:
                 v = v.astype(np.uint16) * 257
-            fitted = _fit_dimension(k, v, header.point_format.dimension_by_name(k), where)
+            fitted = _fit_dimension(k, v, header.point_format.dimension_by_name(k), where,
+                                    bool(cloud.meta.get("pts_intensity")))
             if fitted is not None:
                 las[k] = fitted
         elif k in extra:

@@ -240,7 +240,8 @@ def read_text(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         values = np.concatenate(extra_parts)
         names = _attribute_names(state["names_line"], state["ncols"], state["table"], path.suffix.lower() == ".pts")
         attrs = _whole_colours_as_bytes({name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)})
-    return PointCloud(pts, attrs, "xyz")
+    # a .pts intensity follows Leica's -2048..2047: a LAS writer shifts it into LAS's range
+    return PointCloud(pts, attrs, "xyz", {"pts_intensity": True} if path.suffix.lower() == ".pts" else {})
 
 
 def _whole_colours_as_bytes(attrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
