@@ -98,7 +98,8 @@ def validate_cloud(cloud: PointCloud, path: Path, min_points: int, degenerate_ok
     """Drop non-finite points (with their attributes), then check the count and degeneracy.
 
     The "dropped N non-finite points" warning is logged only for a cloud that is accepted; when the
-    cloud is rejected the error itself says how many points were dropped.
+    cloud is rejected the error itself says how many points were dropped. A shape-checked cloud (not
+    ``degenerate_ok``) whose coordinates are stored coarsely gets :func:`coarse_step_note` as a warning.
     """
     pts = cloud.points
     n_total = len(pts)
@@ -121,7 +122,9 @@ def validate_cloud(cloud: PointCloud, path: Path, min_points: int, degenerate_ok
     core = _check_shape(pts, path, dropped) if not degenerate_ok else None
     if n_bad:
         logger.warning("%s: dropped %d of %d points with non-finite (NaN/inf) coordinates", clean(path), n_bad, n_total)
-    note = coarse_step_note(pts, core)
+    # a registration's read only: a cloud read to be moved (degenerate_ok) is not registered, and its core,
+    # which the note needs, is not worked out (a batch rereads each source it writes aligned)
+    note = coarse_step_note(pts, core) if core is not None else None
     if note:
         logger.warning("%s: %s", clean(path), note)
     return cloud
