@@ -301,6 +301,19 @@ def test_ply_crlf_header(tmp_path, cloud):
     np.testing.assert_array_equal(load_point_cloud(path), cloud)
 
 
+def test_ply_with_carriage_returns_only_says_so(tmp_path, cloud):
+    """Classic Mac OS line ends: the message was "no 'end_header' in the first bytes", though the header
+    has one."""
+    body = "\r".join(" ".join(repr(v) for v in p) for p in cloud.tolist())
+    hdr = ("ply\rformat ascii 1.0\relement vertex 200\r"
+           "property double x\rproperty double y\rproperty double z\rend_header\r")
+    path = tmp_path / "cr.ply"
+    path.write_bytes((hdr + body + "\r").encode())
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "carriage return only")
+
+
 def test_ply_truncated_binary(tmp_path, cloud):
     path = tmp_path / "trunc.ply"
     save_point_cloud(path, cloud)
@@ -382,6 +395,24 @@ def test_ascii_rows_beyond_the_declared_count_are_named(tmp_path, cloud, ext, ca
     with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
         np.testing.assert_array_equal(load_point_cloud(path), cloud)
     assert f"{path}: 2 more data lines after the {len(cloud)}" in caplog.text
+
+
+def test_binary_ply_records_beyond_the_declared_count_are_named(tmp_path, cloud, caplog):
+    """A binary PLY whose vertex count is below the records present was cut without a word, where ASCII
+    PLY, binary PCD and LAS warn; a stray byte or two after the data (a trailing newline) is not a record."""
+    path = tmp_path / "more.ply"
+    save_point_cloud(path, cloud, binary=True)
+    data = path.read_bytes()
+    n = len(cloud)
+    path.write_bytes(data.replace(f"element vertex {n}\n".encode(), f"element vertex {n - 3}\n".encode()))
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        np.testing.assert_array_equal(load_point_cloud(path), cloud[: n - 3])
+    assert f"{path}: 72 more bytes after the {n - 3} vertices the header declares (3 vertices' worth" in caplog.text
+    caplog.clear()
+    path.write_bytes(data + b"\n")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        np.testing.assert_array_equal(load_point_cloud(path), cloud)
+    assert "more bytes" not in caplog.text
 
 
 def test_binary_pcd_records_beyond_the_declared_count_are_named(tmp_path, cloud, caplog):
@@ -466,6 +497,20 @@ def sensor_pcd(path: Path, data: str, n: int = 60) -> dict[str, np.ndarray]:
             body = struct.pack("<II", len(packed), len(raw)) + packed
     path.write_bytes(header + body)
     return v
+
+
+def test_ascii_pcd_rgb_typed_float_but_written_as_its_uint32_bits_is_read_as_colours(tmp_path):
+    """PCL's ASCII writer stores a float ``rgb`` as the integer of its bits (and older PCL, and writers
+    copying it, kept ``TYPE F`` in the header): 4291322930 (0xFFC86432) was read as the float 4.29e9 and
+    came out as red 127 green 200 blue 100 without a word."""
+    header = ("VERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\nWIDTH 4\nHEIGHT 1\n"
+              "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 4\nDATA ascii\n")
+    rows = "0 0 0 4291322930\n1 0 0 4278190080\n0 1 0 16777215\n0 0 1 0\n"
+    (tmp_path / "pcl.pcd").write_text(header + rows)
+    a = read_point_cloud(tmp_path / "pcl.pcd", min_points=4).attributes
+    assert a["red"].tolist() == [200, 0, 255, 0]
+    assert a["green"].tolist() == [100, 0, 255, 0]
+    assert a["blue"].tolist() == [50, 0, 255, 0]
 
 
 @pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
@@ -1141,3 +1186,17 @@ def test_a_coarse_step_is_a_lattice_of_the_core_and_not_a_few_levels_or_a_grid_s
     utm = (bunny * 3 + [512345.0, 4678901.0, 250.0]).astype(np.float32).astype(np.float64)
     note = coarse_step_note(np.vstack([utm, [0.0, 0.0, 0.0]]))
     assert note is not None and note.startswith("coordinates are stored in steps of 0.5 along y, ")
+
+
+def test_a_float32_axis_collapsed_to_two_levels_is_the_one_named(tmp_path, caplog):
+    """The bunny at full size 5.4 million metres from the origin in float32: y holds two values 0.5 apart,
+    so the cloud's core is flat along y and the note named x's 0.03 steps instead of y's 0.5, the cause
+    of the registration's refusal that follows (the points are planar)."""
+    bunny = load_point_cloud(Path(__file__).parents[1] / "data" / "models" / "bunny.ply")
+    path = tmp_path / "flat32.ply"
+    _float32_ply(path, bunny + [512345.6, 5401234.6, 250.0])
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.io"):
+        points = read_point_cloud(path).points
+    assert len(np.unique(points[:, 1])) == 2
+    [warning] = [r.getMessage() for r in caplog.records if "steps of" in r.getMessage()]
+    assert warning.startswith(f"{path}: coordinates are stored in steps of 0.5 along y, ")

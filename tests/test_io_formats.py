@@ -511,6 +511,61 @@ def test_e57_corrupt_files_name_the_file_in_words(tmp_path):
         assert "Exception" not in msg and "Error" not in msg, msg
 
 
+def _e57_with_colours(path: Path, pts: np.ndarray, rgb: np.ndarray, state: np.ndarray, top: int) -> None:
+    """One scan whose colours are integers 0..``top`` (pye57's writer allows only 0..255), without
+    ``colorLimits``, with invalid-state flags."""
+    import uuid
+
+    from pye57 import libe57
+
+    e = pye57.E57(str(path), mode="w")
+    imf = e.image_file
+    scan = libe57.StructureNode(imf)
+    scan.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+    proto = libe57.StructureNode(imf)
+    for a in "XYZ":
+        proto.set(f"cartesian{a}", libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE, -1e3, 1e3))
+    for c in ("Red", "Green", "Blue"):
+        proto.set(f"color{c}", libe57.IntegerNode(imf, 0, 0, top))
+    proto.set("cartesianInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
+    points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
+    scan.set("points", points)
+    e.data3d.append(scan)
+    arrays = [np.ascontiguousarray(pts[:, j]) for j in range(3)]
+    arrays += [np.ascontiguousarray(rgb[:, j], dtype=np.uint16) for j in range(3)]
+    arrays.append(np.ascontiguousarray(state, dtype=np.int8))
+    names = ["cartesianX", "cartesianY", "cartesianZ", "colorRed", "colorGreen", "colorBlue", "cartesianInvalidState"]
+    buffers = libe57.VectorSourceDestBuffer()
+    for name, arr in zip(names, arrays):
+        buffers.append(libe57.SourceDestBuffer(imf, name, arr, len(pts), True, True))
+    writer = points.writer(buffers)
+    writer.write(len(pts))
+    writer.close()
+    e.close()
+
+
+@pytest.mark.parametrize("top", [255, 65535])
+def test_e57_colours_of_8_and_16_bits_are_read_with_their_points(tmp_path, top):
+    """pye57 reads colours into 8-bit buffers, so a scan with 16-bit colours (the standard allows any
+    limits) registered but was "corrupt or unsupported" as soon as its attributes were read (gctr
+    apply, an aligned output). Colours follow their points when invalid points are dropped."""
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(400, 3))
+    rgb = rng.integers(0, top + 1, size=(400, 3))
+    state = np.zeros(400, np.int8)
+    state[::7] = 1
+    _e57_with_colours(tmp_path / "scan.e57", pts, rgb, state, top)
+    cloud = read_point_cloud(tmp_path / "scan.e57")
+    keep = state == 0
+    np.testing.assert_array_equal(cloud.points, pts[keep])
+    for j, name in enumerate(("red", "green", "blue")):
+        assert cloud.attributes[name].dtype == (np.uint8 if top == 255 else np.uint16)
+        np.testing.assert_array_equal(cloud.attributes[name], rgb[keep, j])
+    write_point_cloud(tmp_path / "out.ply", cloud)  # PLY readers expect 8 bits: the high byte
+    back = read_point_cloud(tmp_path / "out.ply")
+    np.testing.assert_array_equal(back.attributes["red"], rgb[keep, 0] >> (8 if top > 255 else 0))
+
+
 # ----------------------------------------------------------------------------------------------------
 # writers
 # ----------------------------------------------------------------------------------------------------
@@ -529,6 +584,72 @@ def rich_cloud():
              "nx": normals[:, 0].astype(np.float32), "ny": normals[:, 1].astype(np.float32),
              "nz": normals[:, 2].astype(np.float32)}
     return PointCloud(pts, attrs)
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".csv", ".las"])
+def test_attribute_names_beyond_ascii_are_written_in_ascii(tmp_path, caplog, ext):
+    """A PLY property named ``intensité`` (UTF-8 in the header, as current tools write it) ended every
+    writer but LAS in a UnicodeEncodeError traceback: in a batch the pair's good matrix was lost."""
+    rng = np.random.default_rng(6)
+    pts = rng.normal(size=(50, 3))
+    header = ("ply\nformat ascii 1.0\nelement vertex 50\nproperty double x\nproperty double y\n"
+              "property double z\nproperty float intensité\nproperty float höhe_über_grund\nend_header\n")
+    values = rng.random((50, 2)).astype(np.float32)
+    rows = "".join(" ".join(repr(float(x)) for x in (*p, *v)) + "\n" for p, v in zip(pts, values))
+    (tmp_path / "src.ply").write_bytes((header + rows).encode("utf-8"))
+    cloud = read_point_cloud(tmp_path / "src.ply")
+    assert "intensité" in cloud.attributes  # read as UTF-8, not as Latin-1 mojibake
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(tmp_path / f"out{ext}", cloud)
+    assert "'intensité' as 'intensite'" in caplog.text
+    back = read_point_cloud(tmp_path / f"out{ext}")
+    np.testing.assert_allclose(back.attributes["intensite"], values[:, 0], rtol=1e-6)
+    np.testing.assert_allclose(back.attributes["hohe_uber_grund"], values[:, 1], rtol=1e-6)
+
+
+def test_las_extra_dimension_names_are_cut_to_32_bytes_and_standard_names_match_any_case(tmp_path, caplog):
+    """A name longer than an ExtraBytes record's 32 bytes ended in a traceback from laspy; a PLY's
+    ``Intensity`` and ``Red Green Blue`` went to extra dimensions, leaving the standard ones 0."""
+    rng = np.random.default_rng(7)
+    n = 80
+    names = ["scalar_C2C_absolute_distances_(XY)", "scalar_C2C_absolute_distances_(Z)",
+             "a_very_long_scalar_field_name_of_40_chars", "a_very_long_scalar_field_name_of_41_chars"]
+    attrs = {k: rng.random(n) for k in names}
+    attrs.update({"Intensity": rng.integers(0, 4000, n).astype(np.uint16),
+                  "Red": rng.integers(0, 256, n).astype(np.uint8), "Green": rng.integers(0, 256, n).astype(np.uint8),
+                  "Blue": rng.integers(0, 256, n).astype(np.uint8), "Classification": rng.random(n)})
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(tmp_path / "out.las", PointCloud(rng.normal(size=(n, 3)), attrs))
+    las = laspy.read(tmp_path / "out.las")
+    assert las.point_format.id == 7
+    np.testing.assert_array_equal(las.intensity, attrs["Intensity"])
+    np.testing.assert_array_equal(las.red, attrs["Red"].astype(np.uint16) * 257)
+    written = ["scalar_C2C_absolute_distances_XY", "scalar_C2C_absolute_distances_Z",
+               "a_very_long_scalar_field_name_of", "a_very_long_scalar_field_name_2"]
+    # fractions cannot fill the standard classification: kept as an extra dimension, under their own name
+    assert sorted(las.point_format.extra_dimension_names) == sorted([*written, "Classification"])
+    for old, new in zip(names, written):
+        np.testing.assert_array_equal(las[new], attrs[old])
+        assert f"{old!r} as {new!r}" in caplog.text
+
+
+def test_ply_writes_64_bit_integers_as_32_bits_when_they_fit_and_warns_when_double_loses_digits(tmp_path, caplog):
+    """PLY has no 64-bit integer: nanosecond time stamps written as double became 97 distinct values of
+    8171 without a word."""
+    n = 100
+    stamps = np.int64(1_700_000_000_123_456_789) + np.arange(n, dtype=np.int64) * 3
+    attrs = {"timestamp": stamps, "point_id": np.arange(n, dtype=np.int64), "offset": -np.arange(n, dtype=np.int64),
+             "flag": np.arange(n) % 2 == 0}
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(tmp_path / "out.ply", PointCloud(np.random.default_rng(8).normal(size=(n, 3)), attrs))
+    back = read_point_cloud(tmp_path / "out.ply").attributes
+    assert back["point_id"].dtype == np.uint32 and back["offset"].dtype == np.int32 and back["flag"].dtype == np.uint8
+    np.testing.assert_array_equal(back["point_id"], attrs["point_id"])
+    np.testing.assert_array_equal(back["offset"], attrs["offset"])
+    np.testing.assert_array_equal(back["flag"], attrs["flag"])
+    assert back["timestamp"].dtype == np.float64
+    assert "attribute 'timestamp' written as double, which keeps integers up to 2^53 exactly" in caplog.text
+    assert "point_id" not in caplog.text and "offset" not in caplog.text
 
 
 @pytest.mark.parametrize("ext", [".ply", ".pcd"])

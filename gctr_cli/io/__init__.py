@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from gctr_cli.fsutil import atomic_write, write_error
-from gctr_cli.io.cloud import COLLINEAR_RTOL, PointCloud, transform_cloud, validate_cloud
+from gctr_cli.io.cloud import COLLINEAR_RTOL, PointCloud, ascii_attribute_names, transform_cloud, validate_cloud
 from gctr_cli.io.errors import MatrixError, PointCloudError, clean
 from gctr_cli.io.matrix import format_matrix, read_matrix, write_matrix
 from gctr_cli.io.paths import check_input_file
@@ -169,6 +169,7 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     if text:  # no format takes text or objects per point: said once, not skipped without a word
         logger.warning("%s: attributes not written (not numeric): %s", clean(path), clean(", ".join(text)))
         cloud = dataclasses.replace(cloud, attributes={k: v for k, v in cloud.attributes.items() if str(k) not in text})
+    cloud = dataclasses.replace(cloud, attributes=ascii_attribute_names(cloud.attributes, clean(path)))
     if fmt.name not in ("LAS", "LAZ") and cloud.source_format == "las" and "las_header" in cloud.meta:
         from gctr_cli.io.las import crs_description
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,8 +12,8 @@ import numpy as np
 from gctr_cli.geometry import coordinate_range_problem, robust_core
 from gctr_cli.io.errors import PointCloudError, clean
 
-__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "eight_bit_colours", "element_columns", "named_normals",
-           "transform_cloud", "validate_cloud"]
+__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "ascii_attribute_names", "eight_bit_colours",
+           "element_columns", "named_normals", "transform_cloud", "validate_cloud"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -146,8 +147,10 @@ def coarse_step_note(points: np.ndarray, core: np.ndarray | None = None) -> str 
     found = []  # (axis, step, far, float32 storage explains the step)
     for axis in range(3):
         values = np.unique(sample[:, axis])
-        if len(values) < 2:
-            continue
+        if len(values) < 2:  # the core is flat along it: the axis may hold two levels a coarse step apart
+            values = np.unique(points[:: max(1, len(points) // COARSE_STEP_SAMPLE), axis])
+            if len(values) < 2:
+                continue
         gaps = np.diff(values)
         step = float(gaps.min())
         if step <= COARSE_STEP_RATIO * diagonal:
@@ -253,6 +256,40 @@ def eight_bit_colours(attributes: dict[str, np.ndarray]) -> dict[str, np.ndarray
     for k, v in zip(("red", "green", "blue"), rgb, strict=True):
         v = v.astype(np.int64)
         out[k] = np.clip(v >> 8 if wide else v, 0, 255).astype(np.uint8)
+    return out
+
+
+def _ascii_name(name: str) -> str:
+    """``name`` in printable ASCII without blanks: accents dropped (``intensité`` -> ``intensite``), any
+    other character as ``_``."""
+    plain = unicodedata.normalize("NFKD", name).encode("ascii", "ignore").decode("ascii")
+    plain = "".join(c if c.isascii() and c.isprintable() and not c.isspace() else "_" for c in plain)
+    return plain.strip("_") or "attribute"
+
+
+def ascii_attribute_names(attributes: dict[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
+    """``attributes`` with every name in printable ASCII without blanks, as PLY, PCD, LAS and text headers
+    need (their headers are ASCII; a name with a blank would split into two). A renamed attribute is
+    named in one warning; a new name that is taken gets ``_2``, ``_3`` ... Names that are fine, and the
+    order, are unchanged."""
+    if all(str(k).isascii() and str(k).isprintable() and not any(c.isspace() for c in str(k)) for k in attributes):
+        return attributes
+    out: dict[str, np.ndarray] = {}
+    renamed = []
+    taken = {str(k) for k in attributes}
+    for k, v in attributes.items():
+        name = str(k)
+        if not (name.isascii() and name.isprintable() and not any(c.isspace() for c in name)):
+            base = new = _ascii_name(name)
+            j = 2
+            while new in taken:
+                new, j = f"{base}_{j}", j + 1
+            taken.add(new)
+            renamed.append(f"{name!r} as {new!r}")
+            name = new
+        out[name] = v
+    logger.warning("%s: attribute names written in ASCII (the format's header holds no other characters): %s",
+                   where, ", ".join(renamed))
     return out
 
 

@@ -59,6 +59,49 @@ def _not_kept(path: Path, names: list[str], fields: list[set[str]], want_int: bo
         logger.warning("%s: not kept: %s", clean(path), "; ".join(parts), extra=ATTRIBUTE_NOTE)
 
 
+def _colour_limit(header) -> float | None:
+    """The largest colour value the scan's ``colorLimits`` allow, or None when it does not say."""
+    try:
+        limits = header["colorLimits"]
+        return max(float(limits[f"color{c}Maximum"].value()) for c in ("Red", "Green", "Blue"))
+    except Exception:  # noqa: BLE001 - an optional node; absent or odd means "not said"
+        return None
+
+
+def _scan_colours(e57, header, i: int) -> dict[str, np.ndarray]:
+    """The colours of scan ``i`` as float64, its invalid points dropped as pye57 drops them.
+
+    Read here, not by pye57's ``read_scan(colors=True)``, whose 8-bit buffers refuse the 16-bit colours
+    (limits 0..65535) that the standard allows and scanners write."""
+    from pye57 import libe57
+
+    n = int(header.point_count)
+    state = "cartesianInvalidState" if "cartesianX" in header.point_fields else "sphericalInvalidState"
+    fields = [*_COLOR, *([state] if state in header.point_fields else [])]
+    data = {f: np.empty(n, np.int8 if f == state else np.float64) for f in fields}
+    buffers = libe57.VectorSourceDestBuffer()
+    for f in fields:
+        buffers.append(libe57.SourceDestBuffer(e57.image_file, f, data[f], n, True, True))
+    header.points.reader(buffers).read()
+    keep = data[state] == 0 if state in data else slice(None)
+    return {v: data[k][keep] for k, v in _COLOR.items()}
+
+
+def _colour_type(parts: dict[str, list[np.ndarray]], limit: float | None) -> dict[str, np.ndarray]:
+    """Merged colours in the type their range needs: 8 bits for 0..255, 16 bits for 0..65535 (as LAS
+    stores them; the writers narrow them where a format holds 8), 0..1 floats as 8 bits. The range is
+    the scans' ``colorLimits`` when they give it (a dark 16-bit image stays 16-bit), else the values'."""
+    merged = {k: np.concatenate(v) for k, v in parts.items()}
+    top = limit if limit is not None else max((float(v.max()) for v in merged.values() if len(v)), default=0.0)
+    fractional = any(len(v) and not np.array_equal(v, np.round(v)) for v in merged.values())
+    if top <= 1.0 and fractional:
+        return {k: np.round(np.clip(v, 0, 1) * 255).astype(np.uint8) for k, v in merged.items()}
+    if top <= 255:
+        return {k: np.clip(np.round(v), 0, 255).astype(np.uint8) for k, v in merged.items()}
+    scale = 65535.0 / top if top > 65535 else 1.0
+    return {k: np.clip(np.round(v * scale), 0, 65535).astype(np.uint16) for k, v in merged.items()}
+
+
 def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     import pye57
 
@@ -106,12 +149,11 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             _not_kept(path, names, headers, want_int, want_rgb)
         parts: list[np.ndarray] = []
         attrs: dict[str, list[np.ndarray]] = {"intensity": []} if want_int else {}
-        if want_rgb:
-            attrs.update({v: [] for v in _COLOR.values()})
+        colours: dict[str, list[np.ndarray]] = {v: [] for v in _COLOR.values()}
+        limits: list[float | None] = []
         for i in range(n_scans):
             try:
-                data = e57.read_scan(i, intensity=want_int, colors=want_rgb, transform=True,
-                                     ignore_missing_fields=True)
+                data = e57.read_scan(i, intensity=want_int, transform=True, ignore_missing_fields=True)
             except MemoryError:
                 raise PointCloudError(f"{path}: too large to load into memory ({total} points)") from None
             except Exception as exc:  # noqa: BLE001
@@ -121,9 +163,26 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             parts.append(xyz)
             if want_int:
                 attrs["intensity"].append(np.asarray(data["intensity"]))
-            for k, v in _COLOR.items():
-                if want_rgb:
-                    attrs[v].append(np.asarray(data[k]))
+            if want_rgb:
+                h = e57.get_header(i)
+                try:
+                    scan_rgb = _scan_colours(e57, h, i)
+                except MemoryError:
+                    raise PointCloudError(f"{path}: too large to load into memory ({total} points)") from None
+                except Exception as exc:  # the points are fine; only the colours are lost
+                    logger.debug("%s: colours of scan %d", path, i, exc_info=exc)
+                    logger.warning("%s: colours not kept: those of %s cannot be decoded", clean(path), names[i],
+                                   extra=ATTRIBUTE_NOTE)
+                    want_rgb = False
+                    continue
+                if len(scan_rgb["red"]) != len(xyz):  # invalid points judged otherwise: better none than shifted
+                    logger.warning("%s: colours not kept: %s has %d colours for %d points", clean(path), names[i],
+                                   len(scan_rgb["red"]), len(xyz), extra=ATTRIBUTE_NOTE)
+                    want_rgb = False
+                    continue
+                limits.append(_colour_limit(h))
+                for k, v in scan_rgb.items():
+                    colours[k].append(v)
     finally:
         try:
             e57.close()
@@ -136,5 +195,8 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         logger.warning("%s: dropped %d of %d points the E57 file flags invalid (no coordinates measured)",
                        clean(path), invalid, total)
     out = {k: np.concatenate(v) for k, v in attrs.items() if v}
+    if want_rgb and colours["red"]:
+        limit = None if any(x is None for x in limits) else max(x for x in limits if x is not None)
+        out.update(_colour_type(colours, limit))
     return PointCloud(pts, {k: v for k, v in out.items() if len(v) == len(pts)}, "e57",
                       {"e57_scans": n_scans})

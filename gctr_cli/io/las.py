@@ -574,6 +574,63 @@ def _join_elements(source_extra: dict[str, Any], attrs: dict[str, np.ndarray]) -
     return out
 
 
+#: the longest name a LAS extra dimension can have (bytes of its ExtraBytes record)
+EXTRA_NAME_BYTES = 32
+
+
+def _fits(name: str, values: np.ndarray, dim: Any) -> bool:
+    """Whether :func:`_fit_dimension` takes ``values`` for ``dim`` (without its warnings)."""
+    if values.dtype.kind not in "fiub":
+        return False
+    if dim.kind.name == "FloatingPoint":
+        return True
+    if (name == "intensity" and values.dtype.kind == "f" and len(values) and np.isfinite(values).all()
+            and values.min() >= 0.0 and values.max() <= 1.0):
+        return True
+    return integer_misfit(values, int(dim.min), int(dim.max)) is None
+
+
+def _standard_case(names: set[str], attrs: dict[str, np.ndarray], point_format: Any = None) -> dict[str, np.ndarray]:
+    """``attrs`` with a name that is one of ``names`` (standard LAS dimensions) but for its case
+    (``Intensity``, ``Red`` of a PLY or PCD) under that name, so that it fills the standard dimension
+    instead of an extra one. Not when the standard name is taken too, nor (given the ``point_format``)
+    when the values do not fit the dimension: they are kept as an extra dimension then."""
+    out = {}
+    for k, v in attrs.items():
+        low = k.lower()
+        use = (k not in names and low in names and low not in attrs and low not in out
+               and (point_format is None or _fits(low, v, point_format.dimension_by_name(low))))
+        out[low if use else k] = v
+    return out
+
+
+def _extra_names(standard: set[str], attrs: dict[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
+    """``attrs`` with every name that will be an extra dimension made an identifier of at most
+    :data:`EXTRA_NAME_BYTES` (a CloudCompare scalar field such as ``scalar_C2C_absolute_distances_(XY)``
+    is neither), the names kept distinct; the renamed ones are named in one warning."""
+    taken = set(attrs)
+    renamed = {}
+    for k in attrs:
+        if k in standard or k in ("X", "Y", "Z", "x", "y", "z"):
+            continue
+        new = k if k.isidentifier() else re.sub(r"_*\W+_*", "_", k).strip("_") or "attribute"
+        new = "_" + new if new[0].isdigit() else new
+        new = new.encode("utf-8")[:EXTRA_NAME_BYTES].decode("utf-8", "ignore")
+        if new == k:
+            continue
+        base, j = new, 2
+        while new in taken:
+            tail = f"_{j}"
+            new = base.encode("utf-8")[:EXTRA_NAME_BYTES - len(tail)].decode("utf-8", "ignore").rstrip("_") + tail
+            j += 1
+        taken.add(new)
+        renamed[k] = new
+    if renamed:
+        logger.warning("%s: attribute names changed for LAS extra dimensions (at most %d bytes of letters, digits "
+                       "and _): %s", where, EXTRA_NAME_BYTES, ", ".join(f"{k!r} as {v!r}" for k, v in renamed.items()))
+    return {renamed.get(k, k): v for k, v in attrs.items()}
+
+
 def _extra_dim(name: str, values: np.ndarray, source_dim: Any) -> Any:
     """The extra dimension for ``values``: the source's own declaration (type, scale, offset, description)
     when it had one of that name and shape, else one of the values' type."""
@@ -606,6 +663,8 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     # flags as 0/1; LAS extra bytes have no 16-bit float
     attrs = {k: v.astype(np.uint8) if v.dtype.kind == "b" else v.astype(np.float32) if v.dtype == np.float16 else v
              for k, v in attrs.items()}
+    if len({k.lower() for k in attrs} & set(_RGB)) == 3 and not set(_RGB) & set(attrs):
+        attrs = _standard_case(set(_RGB), attrs)  # ``Red Green Blue``: a point format with colours
     has_rgb = all(k in attrs for k in _RGB)
     source = cloud.meta.get("las_header") if cloud.source_format == "las" else None
     if source is not None and (not has_rgb or "red" in source.point_format.dimension_names):
@@ -617,13 +676,14 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     if source is not None:
         _carry_header(header, source, where)
     standard = set(header.point_format.dimension_names)
+    attrs = _standard_case(standard, attrs, header.point_format)
     _scan_angle_as(standard, attrs)
     source_extra = {d.name: d for d in source.point_format.extra_dimensions} if source is not None else {}
     attrs = _join_elements(source_extra, attrs)
+    attrs = _extra_names(standard, attrs, where)
     extra = [k for k, v in attrs.items() if k not in standard and v.dtype.kind in "fiu" and k.isidentifier()]
     for k in sorted(attrs.keys() - standard - set(extra) - {"X", "Y", "Z", "x", "y", "z"}):
-        logger.warning("%s: attribute %r not written (LAS extra bytes hold numbers under a name like an "
-                       "identifier)", where, k)
+        logger.warning("%s: attribute %r not written (LAS extra bytes hold numbers)", where, k)
     if extra:
         header.add_extra_dims([_extra_dim(k, attrs[k], source_extra.get(k)) for k in extra])
     if not n:

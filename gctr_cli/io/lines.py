@@ -17,7 +17,8 @@ import numpy as np
 from gctr_cli.io.cloud import ATTRIBUTE_NOTE, integer_misfit
 from gctr_cli.io.errors import PointCloudError, clean, quote
 
-__all__ = ["MAX_LINE", "LineReader", "as_declared", "binary_data", "numeric_text", "parse_float", "read_rows"]
+__all__ = ["MAX_LINE", "LineReader", "as_declared", "binary_data", "header_line", "numeric_text", "parse_float",
+           "read_rows"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -36,6 +37,15 @@ def _peek(fh, n: int = 256) -> bytes:
     data = fh.read(n)
     fh.seek(start)
     return data
+
+
+def header_line(raw: bytes) -> str:
+    """A header line as text: UTF-8 when it is (a property named ``intensité`` by a current tool), else
+    Latin-1, which decodes any byte."""
+    try:
+        return raw.decode("utf-8").strip()
+    except UnicodeDecodeError:
+        return raw.decode("latin-1").strip()
 
 
 def numeric_text(fh) -> bool:

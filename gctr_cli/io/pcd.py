@@ -21,7 +21,15 @@ import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, element_columns, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.lines import LineReader, as_declared, binary_data, numeric_text, parse_float, read_rows
+from gctr_cli.io.lines import (
+    LineReader,
+    as_declared,
+    binary_data,
+    header_line,
+    numeric_text,
+    parse_float,
+    read_rows,
+)
 from gctr_cli.io.ply import format_columns, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]
@@ -54,6 +62,14 @@ class _Header:
 
     def point_size(self) -> int:
         return sum(s * c for s, c in zip(self.sizes, self.counts))
+
+
+def _whole_u32(values: np.ndarray) -> bool:
+    """Whether ``values`` are whole numbers in 0..2^32-1, some of them 1 or more: the uint32 bits of packed
+    colours written as text, not float values."""
+    v = np.asarray(values, dtype=np.float64)
+    return bool(len(v) and np.isfinite(v).all() and (v == np.round(v)).all() and v.min() >= 0
+                and v.max() >= 1 and v.max() < 2.0**32)
 
 
 def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
@@ -96,6 +112,12 @@ def read_pcd(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             name = hdr.fields[i]
             if name in ("x", "y", "z"):
                 table[name] = rows[:, starts[i]]
+                continue
+            raw = rows[:, starts[i]]
+            if name in ("rgb", "rgba") and hdr.types[i] == "F" and hdr.counts[i] == 1 and _whole_u32(raw):
+                # PCL's ASCII writer stores a float rgb as its uint32 bits ("4291322930"); a packed float
+                # itself, as text, is a tiny or NaN number, never a whole number from 1 up
+                table[name] = raw.astype(np.uint32)
                 continue
             for j, col in enumerate(element_columns(name, hdr.counts[i])):
                 table[col] = as_declared(path, col, f"{hdr.types[i]} {hdr.sizes[i]}", rows[:, starts[i] + j],
@@ -209,7 +231,7 @@ def _parse_header(fh, path: Path) -> _Header:
             break
         if consumed > MAX_HEADER_BYTES or (len(raw) == MAX_HEADER_LINE and not raw.endswith(b"\n")):
             raise PointCloudError(f"{path}: not a PCD file (header line {lineno} is too long / not text)")
-        line = raw.decode("latin-1").strip()
+        line = header_line(raw)
         if not line or line.startswith("#"):
             continue
         words = line.split()
@@ -218,7 +240,7 @@ def _parse_header(fh, path: Path) -> _Header:
             if not vals:
                 raise PointCloudError(
                     f"{path}: not a PCD file (header line {lineno} does not start with a PCD keyword)")
-            if parse_float(words[0].encode("latin-1")) is not None:
+            if parse_float(words[0].encode("utf-8")) is not None:
                 raise PointCloudError(f"{path}: broken PCD header: missing DATA line (numeric data on line {lineno})")
             raise PointCloudError(f"{path}: broken PCD header: unknown keyword {quote(words[0])} on line {lineno}")
         if key == "COLUMNS":
@@ -295,7 +317,7 @@ def _parse_header(fh, path: Path) -> _Header:
         raise bad(f"unknown DATA type {quote(data)} (expected ascii, binary or binary_compressed)")
     viewpoint = None
     if "VIEWPOINT" in vals:
-        numbers = [parse_float(w.encode("latin-1")) for w in vals["VIEWPOINT"]]
+        numbers = [parse_float(w.encode("utf-8")) for w in vals["VIEWPOINT"]]
         if len(numbers) == 7 and all(v is not None and np.isfinite(v) for v in numbers):
             viewpoint = tuple(float(v) for v in numbers if v is not None)
     return _Header(fields, sizes, types, counts, points, data, lineno, viewpoint)

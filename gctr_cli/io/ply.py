@@ -21,7 +21,15 @@ import numpy as np
 
 from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.lines import LineReader, as_declared, binary_data, numeric_text, parse_float, read_rows
+from gctr_cli.io.lines import (
+    LineReader,
+    as_declared,
+    binary_data,
+    header_line,
+    numeric_text,
+    parse_float,
+    read_rows,
+)
 
 __all__ = ["ply_bytes", "read_ply"]
 
@@ -76,7 +84,8 @@ def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     if not (magic[:3] == b"ply" and magic[3:4] in (b"\n", b"\r")):
         raise PointCloudError(f"{path}: not a PLY file (missing 'ply' magic)")
     if magic[3:4] == b"\r" and fh.read(1) != b"\n":
-        fh.seek(4)
+        raise PointCloudError(f"{path}: PLY header lines end in a carriage return only (classic Mac OS line ends); "
+                              "PLY needs LF or CR LF line ends: convert the file (e.g. tr '\\r' '\\n')")
     fmt, elements, header_lines = _parse_header(fh, path)
     data_bytes = size - fh.tell()
 
@@ -149,7 +158,7 @@ def _parse_header(fh, path: Path) -> tuple[str, list[_Element], int]:
             raise PointCloudError(f"{path}: PLY header is not terminated by 'end_header'")
         if consumed > MAX_HEADER_BYTES or (len(raw) == MAX_HEADER_LINE and not raw.endswith(b"\n")):
             raise PointCloudError(f"{path}: PLY header is malformed (no 'end_header' in the first bytes)")
-        line = raw.decode("latin-1").strip()
+        line = header_line(raw)
         if not line:
             continue
         words = line.split()
@@ -192,7 +201,7 @@ def _parse_header(fh, path: Path) -> tuple[str, list[_Element], int]:
                 elements[-1].props.append(_Prop(words[2], PLY_TYPES[words[1]], declared=words[1]))
             else:
                 raise bad(f"unknown property type in {quote(line, 80)}")
-        elif parse_float(key.encode("latin-1")) is not None:
+        elif parse_float(key.encode("utf-8")) is not None:
             raise PointCloudError(
                 f"{path}: PLY header is not terminated by 'end_header' (numeric data on line {lineno})"
             )
@@ -303,6 +312,10 @@ def _read_binary(path: Path, body: bytes, elements: list[_Element], vidx: int, o
                 f"vertex data follow (expected {n * dtype.itemsize})"
             )
         rec = np.frombuffer(body, dtype=dtype, count=n, offset=offset)
+        left = len(body) - offset - n * dtype.itemsize
+        if vidx == len(elements) - 1 and left >= dtype.itemsize:  # nothing may follow the last element
+            logger.warning("%s: %d more bytes after the %d vertices the header declares (%d vertices' worth; "
+                           "ignored)", path, left, n, left // dtype.itemsize)
         return {p.name: rec[f"p{i}"] for i, p in enumerate(vertex.props)}
     out = {p.name: np.empty(n, dtype=np.float64) for p in vertex.props if p.count_dtype is None}
     for r in range(n):
@@ -397,22 +410,47 @@ def _skip_element(path: Path, body: bytes, el: _Element, offset: int, order: str
 # ----------------------------------------------------------------------------------------------------
 
 
-def ply_bytes(cloud: PointCloud, binary: bool = True) -> bytes:
-    """The bytes of a PLY file: float64 x y z plus every 1-D attribute in its own type (binary little
-    endian when ``binary``, else ASCII with ``%.17g``). Normals are written as ``nx ny nz``, 16-bit
-    colours as 8-bit (:func:`~gctr_cli.io.cloud.eight_bit_colours`)."""
+def _ply_type(name: str, v: np.ndarray, where: str) -> str | None:
+    """The PLY type code for attribute ``v`` (None: not written): its own where PLY has it; a 64-bit
+    integer as 32 bits when its values fit, else as double, with a warning when that loses digits
+    (a nanosecond time stamp: PLY has no 64-bit integer); a flag as uchar; a half float as float."""
+    code = v.dtype.str[1:]
+    if code in _TYPE_NAMES:
+        return code
+    if v.dtype.kind == "b":
+        return "u1"
+    if v.dtype.kind == "f":
+        return "f4" if v.dtype.itemsize < 4 else "f8"
+    if v.dtype.kind not in "iu":
+        return None
+    low, high = (int(v.min()), int(v.max())) if len(v) else (0, 0)
+    if low >= 0 and high <= np.iinfo(np.uint32).max:
+        return "u4"
+    if low >= np.iinfo(np.int32).min and high <= np.iinfo(np.int32).max:
+        return "i4"
+    if max(-low, high) > 2**53:
+        logger.warning("%s: attribute %r written as double, which keeps integers up to 2^53 exactly (it holds "
+                       "%d..%d; PLY has no 64-bit integer): write .pcd or .las to keep every digit", where, name,
+                       low, high)
+    return "f8"
+
+
+def ply_bytes(cloud: PointCloud, binary: bool = True, path: Path | None = None) -> bytes:
+    """The bytes of a PLY file: float64 x y z plus every 1-D attribute in its own type, or the nearest
+    PLY has (:func:`_ply_type`; binary little endian when ``binary``, else ASCII with ``%.17g``).
+    Normals are written as ``nx ny nz``, 16-bit colours as 8-bit
+    (:func:`~gctr_cli.io.cloud.eight_bit_colours`)."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     n = len(pts)
+    where = clean(path) if path is not None else "PLY output"
     cols: list[tuple[str, np.ndarray]] = [("x", pts[:, 0]), ("y", pts[:, 1]), ("z", pts[:, 2])]
     for name, values in eight_bit_colours(named_normals(cloud.attributes, ("nx", "ny", "nz"))).items():
         v = np.asarray(values)
         if v.shape != (n,) or name in ("x", "y", "z"):
             continue
-        code = v.dtype.str[1:]
-        if code not in _TYPE_NAMES:
-            if v.dtype.kind not in "fiub":
-                continue
-            v, code = v.astype(np.float64), "f8"
+        code = _ply_type(str(name), v, where)
+        if code is None:
+            continue
         cols.append(("_".join(str(name).split()) or "attr", v.astype("<" + code)))
     fmt = "binary_little_endian" if binary else "ascii"
     header = f"ply\nformat {fmt} 1.0\ncomment written by gctr\nelement vertex {n}\n"

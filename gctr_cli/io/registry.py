@@ -25,10 +25,10 @@ def _reader(module: str, name: str) -> Reader:
     return read
 
 
-def _write_ply(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
+def _write_ply(cloud: PointCloud, binary: bool, path: Path) -> bytes:
     from gctr_cli.io.ply import ply_bytes
 
-    return ply_bytes(cloud, binary)
+    return ply_bytes(cloud, binary, path)
 
 
 def _write_pcd(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
