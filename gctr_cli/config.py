@@ -475,8 +475,12 @@ def load_config(path: str | Path | None) -> Config:
     try:
         data = yaml.load(text, Loader=_unique_key_loader())  # a SafeLoader subclass
     except yaml.MarkedYAMLError as err:
-        where = f" (line {err.problem_mark.line + 1}, column {err.problem_mark.column + 1})" if err.problem_mark else ""
-        raise ConfigError(f"config file {p} is not valid YAML{where}: {err.problem}") from None
+        mark, problem = err.problem_mark, err.problem
+        if mark is not None and err.context_mark is not None and mark.index >= len(text.rstrip()):
+            # found missing only at the end of the file (line 5 of a 4-line file): the line it belongs to
+            mark, problem = err.context_mark, f"{err.context}, {err.problem}"
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        raise ConfigError(f"config file {p} is not valid YAML{where}: {problem}") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"config file {p} is not valid YAML: {err}") from None
     return config_from_dict(data, str(p))

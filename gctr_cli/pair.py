@@ -172,8 +172,11 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
 
     # 1. point clouds
     for role, path in (("source", spec.source), ("target", spec.target)):
+        t_read = time.perf_counter()
         try:
             clouds[role] = load_point_cloud(path)
+            logger.info("pair %s: %s %s: %d points, read in %.2f s", spec.pair_id, role, path, len(clouds[role]),
+                        time.perf_counter() - t_read)
         except PointCloudError as exc:
             return failed_outcome(spec, seed, str(exc), "input", NOT_RUN)
         except Exception as exc:  # noqa: BLE001 - a loader bug must still name the file
@@ -219,6 +222,9 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
         runtime = float(getattr(result, "runtime_s", float("nan")))
         if not math.isfinite(runtime):
             runtime = elapsed()
+        stages = ", ".join(f"{k} {v:.2f} s" for k, v in (getattr(result, "timings", None) or {}).items())
+        logger.info("pair %s: %s in %.2f s, confidence %.2f%s", spec.pair_id, result.status, runtime,
+                    _confidence(result), f"; stages: {stages}" if stages else "")
         fitness = float(result.fitness)
         rmse = float(result.inlier_rmse)
         confidence = _confidence(result)

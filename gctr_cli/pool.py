@@ -51,8 +51,9 @@ STARTUP_GRACE_S = 120.0
 
 
 def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid: int,
-                 snapshots: bool = False) -> None:
-    """Loop of one worker process.
+                 snapshots: bool = False, log_level: int = logging.WARNING) -> None:
+    """Loop of one worker process (``log_level``: the parent's, so that ``-v``/``-vv`` show the pairs'
+    info and debug lines, on the stderr the worker shares with it).
 
     Receives ``(spec, seed)``; answers ``("start", None)`` when it begins the pair (the parent starts
     the pair's clock then, so import time does not count against the time limit) and
@@ -77,6 +78,14 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     root.addHandler(handler)
     root.setLevel(logging.WARNING)
     logging.captureWarnings(True)
+    if log_level < logging.WARNING:  # -v / -vv: info and debug lines go to stderr; warnings travel with the outcome
+        verbose = logging.StreamHandler(sys.stderr)
+        verbose.setLevel(log_level)
+        verbose.addFilter(lambda record: record.levelno < logging.WARNING)
+        verbose.setFormatter(logging.Formatter(f"gctr: %(levelname)s: worker {os.getpid()}: %(message)s"))
+        package = logging.getLogger("gctr_cli")
+        package.addHandler(verbose)
+        package.setLevel(log_level)
 
     startup_error = None
     register_fn = None
@@ -130,7 +139,8 @@ class _Worker:
         self.conn, child_conn = ctx.Pipe(duplex=True)
         self.process = ctx.Process(
             target=_worker_main,
-            args=(child_conn, config, register_ref, os.getpid(), snapshots),
+            args=(child_conn, config, register_ref, os.getpid(), snapshots,
+                  logging.getLogger("gctr_cli").getEffectiveLevel()),
             name="gctr-worker",
             daemon=True,
         )

@@ -413,6 +413,11 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     thresholds = getattr(config, "success", None)
 
     s = summary
+    recorded = {r.get("pair_id") for r in rows}
+    # pairs of a stopped run that have no row yet: listed as the failed pairs the cards count them as
+    rows = rows + [{"pair_id": pid, "status": "failed", "message": f"{NO_RESULT}: the run was stopped before "
+                    "this pair; rerun with --resume to finish"}
+                   for pid, msg in getattr(s, "failures", ()) if msg == NO_RESULT and pid not in recorded]
     ok_rows = [r for r in rows if r.get("status") == "ok"]
     err_rows = [errs[r["pair_id"]] for r in ok_rows if r["pair_id"] in errs]
     plot = _error_plot(err_rows, s.n_gt, thresholds)

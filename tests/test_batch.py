@@ -351,6 +351,28 @@ def test_retry_failed_runs_again_the_failed_pairs_of_an_earlier_run(dataset, tmp
 
 
 @pytest.mark.slow
+def test_workers_log_each_pair_at_the_level_of_the_batch(four_pairs, fast_config, tmp_path, capfd):
+    """``-v`` showed nothing for a batch: its workers (spawned processes) logged at warning level only.
+    They now log at the parent's level, on the stderr they share with it; warnings still travel with the
+    outcome (in its row), not twice."""
+    import logging
+
+    package = logging.getLogger("gctr_cli")
+    level = package.level
+    package.setLevel(logging.INFO)
+    try:
+        run(four_pairs, fast_config, tmp_path / "v", workers=2)
+    finally:
+        package.setLevel(level)
+    err = capfd.readouterr().err
+    for row in four_pairs.rows:
+        assert f"pair {row['pair_id']}: source {four_pairs.root / row['source']}: " in err
+        assert f"pair {row['pair_id']}: ok in " in err
+    assert "WARNING" not in err
+    run(four_pairs, fast_config, tmp_path / "quiet", workers=2)
+    assert "pair " not in capfd.readouterr().err
+
+
 def test_results_do_not_depend_on_worker_count(four_pairs, fast_config, tmp_path):
     for i in range(3):
         four_pairs.add_pair(f"extra{i}", exts=(".pcd", ".pcd"))

@@ -426,6 +426,24 @@ def test_scattered_points_fail_gracefully():
                            "too (source 0, target 0)")
 
 
+def test_too_few_salient_points_under_a_small_working_size_names_the_setting():
+    """With ``engine.preprocess.max_points: 100`` (the least the config takes) the refusal blamed the clouds
+    ("too small or too sparse … source 8000 points"): it now names the working size too. The error
+    still pickles (it crosses worker processes)."""
+    import pickle
+
+    import gctr_cli.engine.gctr as engine
+
+    model = _model("bunny")
+    cfg = EngineConfig.model_validate({"preprocess": {"max_points": 100}})
+    res = register(model, model[::4] * 2.0, cfg, seed=0)
+    assert res.status == "failed"
+    assert "the working clouds hold at most engine.preprocess.max_points 100 points" in res.message, res.message
+    err = engine.SparseCloudError(0, 1, 8000, 2000, 100)
+    assert str(pickle.loads(pickle.dumps(err))) == str(err)
+    assert "max_points" not in str(engine.SparseCloudError(0, 1, 80, 20, 6000))
+
+
 def test_scattered_points_are_registered_with_the_coarser_retry():
     """200 scattered points against a scaled and shifted copy: too sparse for the configured supervoxels,
     registered (exactly) by the coarser retry."""

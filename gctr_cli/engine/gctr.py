@@ -110,7 +110,8 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     plan = search_plan(cfg)
     ns, nt, src, tgt, rng_refine, rng_overlaps = _prepared_pair(source, target, cfg, seed, timer, len(plan))
     if len(src.salient) < 4 or len(tgt.salient) < 4:
-        raise SparseCloudError(len(src.salient), len(tgt.salient), len(ns.points), len(nt.points))
+        raise SparseCloudError(len(src.salient), len(tgt.salient), len(ns.points), len(nt.points),
+                               cfg.preprocess.max_points)
     # Scale bounds in normalised units: s_orig = s_norm * size_t / size_s.
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size
@@ -192,14 +193,18 @@ SPARSE_SETTINGS_TEXT = "engine.supervoxel." + ", ".join(f"{key} {value}" for key
 class SparseCloudError(DegenerateCloudError):
     """Too few salient points at the configured supervoxel resolution (:func:`register` retries coarser)."""
 
-    def __init__(self, source_salient: int, target_salient: int, source_points: int, target_points: int) -> None:
+    def __init__(self, source_salient: int, target_salient: int, source_points: int, target_points: int,
+                 max_points: int | None = None) -> None:
         self.salient = (source_salient, target_salient)
-        self._args = (source_salient, target_salient, source_points, target_points)
+        self._args = (source_salient, target_salient, source_points, target_points, max_points)
+        # a working size below the clouds' own is the config's doing, not the clouds'
+        working = (f"; the working clouds hold at most engine.preprocess.max_points {max_points} points"
+                   if max_points is not None and max_points < max(source_points, target_points) else "")
         super().__init__(f"too few salient points (source {source_salient}, target {target_salient}); the clouds "
                          f"are too small or too sparse for the supervoxel resolution (source {source_points} "
-                         f"points, target {target_points})")
+                         f"points, target {target_points}){working}")
 
-    def __reduce__(self) -> tuple[type, tuple[int, int, int, int]]:  # picklable across worker processes
+    def __reduce__(self) -> tuple[type, tuple[int, int, int, int, int | None]]:  # picklable across processes
         return type(self), self._args
 
 
@@ -278,7 +283,8 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         status, refusal, message = "failed", "scale_held" if held else "low_confidence", refusal_message(verdict, cfg)
         if held:
             message += (f"; its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] "
-                        f"(refined without it: {free:.4g}, which at this confidence is no sign that the units differ)")
+                        f"(refined without it: {free:.4g}; at this confidence that alone does not show that the units "
+                            "differ: widen scale_bounds only if they may)")
     elif held:
         status, refusal = "failed", "scale_held"
         message = (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}]: refined "
