@@ -68,8 +68,8 @@ def _colour_limit(header) -> float | None:
         return None
 
 
-def _scan_colours(e57, header, i: int) -> dict[str, np.ndarray]:
-    """The colours of scan ``i`` as float64, its invalid points dropped as pye57 drops them.
+def _scan_colours(e57, header) -> dict[str, np.ndarray]:
+    """The colours of a scan (its ``header``) as float64, its invalid points dropped as pye57 drops them.
 
     Read here, not by pye57's ``read_scan(colors=True)``, whose 8-bit buffers refuse the 16-bit colours
     (limits 0..65535) that the standard allows and scanners write."""
@@ -166,7 +166,7 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
             if want_rgb:
                 h = e57.get_header(i)
                 try:
-                    scan_rgb = _scan_colours(e57, h, i)
+                    scan_rgb = _scan_colours(e57, h)
                 except MemoryError:
                     raise PointCloudError(f"{path}: too large to load into memory ({total} points)") from None
                 except Exception as exc:  # the points are fine; only the colours are lost
