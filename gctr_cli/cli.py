@@ -685,13 +685,14 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
     with _stdout_may_fail("the summary", results=outdir):  # cron: > /dev/full, >&-; the results are saved
         _print_summary(summary, config)
     if min_success is not None and summary.success_rate is not None:
-        rate = (f"success rate {100 * summary.success_rate:.1f}% ({summary.n_success} of {summary.n_gt} "
+        # fractions as given (repr: 0.87500001 stays that), never rounded onto each other
+        rate = (f"success rate {summary.success_rate!r} ({summary.n_success} of {summary.n_gt} "
                 f"{'pair' if summary.n_gt == 1 else 'pairs'} with ground truth)")
         if summary.success_rate < min_success:
-            click.echo(f"gctr: {rate} is below --min-success {100 * min_success:g}%", err=True)
+            click.echo(f"gctr: {rate} is below --min-success {min_success!r}", err=True)
             sys.exit(EXIT_BELOW_MIN_SUCCESS)
         with _stdout_may_fail("the gate's line", results=outdir):  # a CI log shows that the gate was on
-            click.echo(f"min-success {100 * min_success:g}%: passed, {rate}")
+            click.echo(f"min-success {min_success!r}: passed, {rate}")
     sys.exit(EXIT_OK if summary.all_ok else EXIT_FAILED)
 
 

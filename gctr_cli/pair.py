@@ -158,6 +158,7 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
     """:func:`run_pair` without the snapshot; the loaded clouds are left in ``clouds``."""
     from gctr_cli.geometry import robust_core
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
+    from gctr_cli.io.errors import clean
     from gctr_cli.metrics import (
         GT_ORTHOGONALITY_TOL,
         STRICT_ORTHOGONALITY_TOL,
@@ -175,8 +176,8 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
         t_read = time.perf_counter()
         try:
             clouds[role] = load_point_cloud(path)
-            logger.info("pair %s: %s %s: %d points, read in %.2f s", spec.pair_id, role, path, len(clouds[role]),
-                        time.perf_counter() - t_read)
+            logger.info("pair %s: %s %s: %d points, read in %.2f s", spec.pair_id, role, clean(path),
+                        len(clouds[role]), time.perf_counter() - t_read)
         except PointCloudError as exc:
             return failed_outcome(spec, seed, str(exc), "input", NOT_RUN)
         except Exception as exc:  # noqa: BLE001 - a loader bug must still name the file

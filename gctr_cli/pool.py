@@ -140,7 +140,7 @@ class _Worker:
         self.process = ctx.Process(
             target=_worker_main,
             args=(child_conn, config, register_ref, os.getpid(), snapshots,
-                  logging.getLogger("gctr_cli").getEffectiveLevel()),
+                  logging.getLogger("gctr_cli").level or logging.WARNING),  # as the CLI's -v set it
             name="gctr-worker",
             daemon=True,
         )

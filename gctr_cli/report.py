@@ -551,7 +551,9 @@ def _pair_rows(w: Any, rows: Sequence[dict[str, str]], errs: dict[str, dict[str,
             w("<td class=\"thumb none\">&ndash;</td>")
         for key, _label, typ, _tip in COLUMNS:
             raw = cells.get(key, "")
-            if key == "pair_id":
+            if key == "pair_id" and not r.get("source"):  # a pair of a stopped run that has no row yet
+                w(f"<td>{_e(raw)}</td>")
+            elif key == "pair_id":
                 tip = f"source: {r.get('source', '')}\ntarget: {r.get('target', '')}\nseed: {r.get('seed', '')}"
                 w(f"<td title=\"{_e(tip)}\">{_e(raw)}</td>")
             elif key == "status":

@@ -451,11 +451,11 @@ def test_batch_exit_1_and_3(runner, fake_batch, four_pairs, tmp_path):
     res = invoke(runner, "batch", manifest, "-o", tmp_path / "o2", "-j", 2, "--min-success", 0.8)
     assert res.exit_code == 1  # rate reached, but pairs failed
     # a gate that passes says so: a CI log shows that it was on
-    assert "min-success 80%: passed, success rate 80.0% (4 of 5 pairs with ground truth)" in res.stdout
-    res = invoke(runner, "batch", manifest, "-o", tmp_path / "o3", "-j", 2, "--min-success", 0.8001, "-q")
+    assert "min-success 0.8: passed, success rate 0.8 (4 of 5 pairs with ground truth)" in res.stdout
+    res = invoke(runner, "batch", manifest, "-o", tmp_path / "o3", "-j", 2, "--min-success", 0.80000001, "-q")
     assert res.exit_code == 3  # takes precedence over 1
-    # the threshold as given: "80.0% is below 80.0%" read as a contradiction
-    assert "success rate 80.0% (4 of 5 pairs with ground truth) is below --min-success 80.01%" in res.stderr
+    # both as given: "80.0% is below 80.0%" read as a contradiction
+    assert "success rate 0.8 (4 of 5 pairs with ground truth) is below --min-success 0.80000001" in res.stderr
 
 
 def test_batch_exit_2_nothing_run(runner, monkeypatch, four_pairs, tmp_path):

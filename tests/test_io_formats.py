@@ -511,36 +511,38 @@ def test_e57_corrupt_files_name_the_file_in_words(tmp_path):
         assert "Exception" not in msg and "Error" not in msg, msg
 
 
-def _e57_with_colours(path: Path, pts: np.ndarray, rgb: np.ndarray, state: np.ndarray, top: int) -> None:
-    """One scan whose colours are integers 0..``top`` (pye57's writer allows only 0..255), without
-    ``colorLimits``, with invalid-state flags."""
+def _e57_with_colours(path: Path, scans: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]) -> None:
+    """Scans ``(points, rgb, invalid state, top)`` whose colours are integers 0..``top`` (pye57's writer
+    allows only 0..255), without ``colorLimits`` (the prototype's range says the depth)."""
     import uuid
 
     from pye57 import libe57
 
     e = pye57.E57(str(path), mode="w")
     imf = e.image_file
-    scan = libe57.StructureNode(imf)
-    scan.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
-    proto = libe57.StructureNode(imf)
-    for a in "XYZ":
-        proto.set(f"cartesian{a}", libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE, -1e3, 1e3))
-    for c in ("Red", "Green", "Blue"):
-        proto.set(f"color{c}", libe57.IntegerNode(imf, 0, 0, top))
-    proto.set("cartesianInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
-    points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
-    scan.set("points", points)
-    e.data3d.append(scan)
-    arrays = [np.ascontiguousarray(pts[:, j]) for j in range(3)]
-    arrays += [np.ascontiguousarray(rgb[:, j], dtype=np.uint16) for j in range(3)]
-    arrays.append(np.ascontiguousarray(state, dtype=np.int8))
-    names = ["cartesianX", "cartesianY", "cartesianZ", "colorRed", "colorGreen", "colorBlue", "cartesianInvalidState"]
-    buffers = libe57.VectorSourceDestBuffer()
-    for name, arr in zip(names, arrays):
-        buffers.append(libe57.SourceDestBuffer(imf, name, arr, len(pts), True, True))
-    writer = points.writer(buffers)
-    writer.write(len(pts))
-    writer.close()
+    for pts, rgb, state, top in scans:
+        scan = libe57.StructureNode(imf)
+        scan.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+        proto = libe57.StructureNode(imf)
+        for a in "XYZ":
+            proto.set(f"cartesian{a}", libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE, -1e3, 1e3))
+        for c in ("Red", "Green", "Blue"):
+            proto.set(f"color{c}", libe57.IntegerNode(imf, 0, 0, top))
+        proto.set("cartesianInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
+        points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
+        scan.set("points", points)
+        e.data3d.append(scan)
+        arrays = [np.ascontiguousarray(pts[:, j]) for j in range(3)]
+        arrays += [np.ascontiguousarray(rgb[:, j], dtype=np.uint16) for j in range(3)]
+        arrays.append(np.ascontiguousarray(state, dtype=np.int8))
+        names = ["cartesianX", "cartesianY", "cartesianZ", "colorRed", "colorGreen", "colorBlue",
+                 "cartesianInvalidState"]
+        buffers = libe57.VectorSourceDestBuffer()
+        for name, arr in zip(names, arrays):
+            buffers.append(libe57.SourceDestBuffer(imf, name, arr, len(pts), True, True))
+        writer = points.writer(buffers)
+        writer.write(len(pts))
+        writer.close()
     e.close()
 
 
@@ -554,7 +556,7 @@ def test_e57_colours_of_8_and_16_bits_are_read_with_their_points(tmp_path, top):
     rgb = rng.integers(0, top + 1, size=(400, 3))
     state = np.zeros(400, np.int8)
     state[::7] = 1
-    _e57_with_colours(tmp_path / "scan.e57", pts, rgb, state, top)
+    _e57_with_colours(tmp_path / "scan.e57", [(pts, rgb, state, top)])
     cloud = read_point_cloud(tmp_path / "scan.e57")
     keep = state == 0
     np.testing.assert_array_equal(cloud.points, pts[keep])
@@ -564,6 +566,20 @@ def test_e57_colours_of_8_and_16_bits_are_read_with_their_points(tmp_path, top):
     write_point_cloud(tmp_path / "out.ply", cloud)  # PLY readers expect 8 bits: the high byte
     back = read_point_cloud(tmp_path / "out.ply")
     np.testing.assert_array_equal(back.attributes["red"], rgb[keep, 0] >> (8 if top > 255 else 0))
+
+
+def test_e57_scans_of_different_colour_depths_are_merged_at_one_scale(tmp_path):
+    """An 8-bit scan beside a 16-bit one: merged raw, the 8-bit scan's white (255) read as 255 of 65535,
+    nearly black. Each scan is read by its own range; 12-bit colours are stretched to 16 bits."""
+    rng = np.random.default_rng(5)
+    a, b, c = rng.normal(size=(100, 3)), rng.normal(size=(80, 3)) + 5, rng.normal(size=(60, 3)) - 5
+    full = np.ones((100, 3), int)
+    _e57_with_colours(tmp_path / "mixed.e57", [(a, full * 255, np.zeros(100), 255),
+                                               (b, full[:80] * 65535, np.zeros(80), 65535),
+                                               (c, full[:60] * 4095, np.zeros(60), 4095)])
+    cloud = read_point_cloud(tmp_path / "mixed.e57")
+    assert cloud.attributes["green"].dtype == np.uint16
+    np.testing.assert_array_equal(cloud.attributes["green"], np.full(240, 65535))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -650,6 +666,49 @@ def test_ply_writes_64_bit_integers_as_32_bits_when_they_fit_and_warns_when_doub
     assert back["timestamp"].dtype == np.float64
     assert "attribute 'timestamp' written as double, which keeps integers up to 2^53 exactly" in caplog.text
     assert "point_id" not in caplog.text and "offset" not in caplog.text
+
+
+def test_las_names_never_land_on_coordinates_or_standard_dimensions_and_colours_map_only_when_they_fit(
+        tmp_path, caplog):
+    """Review of the renaming: ``(z)`` became ``z`` (a laspy traceback), ``classification*`` filled the
+    standard classification; ``Red Green Blue`` in 0..1 were mapped to LAS colours and then dropped as not
+    fitting (before, extra dimensions); a LAS 1.2 source's extra ``Red Green Blue`` turned the output into
+    LAS 1.4 format 7."""
+    rng = np.random.default_rng(9)
+    n = 60
+    pts = rng.normal(size=(n, 3))
+    attrs = {"(z)": rng.random(n), "ẑ": rng.random(n), "classification*": rng.integers(0, 9, n).astype(np.int32),
+             "Red": rng.random(n), "Green": rng.random(n), "Blue": rng.random(n)}
+    caplog.set_level("WARNING", logger="gctr_cli.io")
+    write_point_cloud(tmp_path / "out.las", PointCloud(pts, attrs))
+    las = laspy.read(tmp_path / "out.las")
+    assert las.point_format.id == 6  # float colours do not fit LAS's: no colour format, kept as extra dimensions
+    assert sorted(las.point_format.extra_dimension_names) == sorted(["z_2", "z_3", "classification_2", "Red",
+                                                                     "Green", "Blue"])
+    np.testing.assert_array_equal(las["z_2"], attrs["(z)"])
+    np.testing.assert_array_equal(las["classification_2"], attrs["classification*"])
+    np.testing.assert_array_equal(las["Red"], attrs["Red"])
+    assert not las.classification.any()
+    np.testing.assert_allclose(las.z, pts[:, 2], atol=1e-6)
+    assert "not written" not in caplog.text
+    # every other format: ``ẑ`` is no coordinate either
+    write_point_cloud(tmp_path / "out.ply", PointCloud(pts, {"ẑ": attrs["ẑ"]}))
+    np.testing.assert_array_equal(read_point_cloud(tmp_path / "out.ply").attributes["z_2"], attrs["ẑ"])
+
+    # a LAS 1.2 source whose extra dimensions are named Red Green Blue keeps its version and format
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.add_extra_dims([laspy.ExtraBytesParams(name=c, type="u2", description="camera") for c in
+                           ("Red", "Green", "Blue")])
+    src = laspy.LasData(header)
+    src.x, src.y, src.z = pts.T
+    for c in ("Red", "Green", "Blue"):
+        src[c] = rng.integers(0, 65536, n).astype(np.uint16)
+    src.write(tmp_path / "pf1.las")
+    write_point_cloud(tmp_path / "back.las", read_point_cloud(tmp_path / "pf1.las"))
+    back = laspy.read(tmp_path / "back.las")
+    assert (str(back.header.version), back.point_format.id) == ("1.2", 1)
+    assert sorted(back.point_format.extra_dimension_names) == ["Blue", "Green", "Red"]
+    np.testing.assert_array_equal(back["Red"], src["Red"])
 
 
 @pytest.mark.parametrize("ext", [".ply", ".pcd"])

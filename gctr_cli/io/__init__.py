@@ -169,7 +169,8 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
     if text:  # no format takes text or objects per point: said once, not skipped without a word
         logger.warning("%s: attributes not written (not numeric): %s", clean(path), clean(", ".join(text)))
         cloud = dataclasses.replace(cloud, attributes={k: v for k, v in cloud.attributes.items() if str(k) not in text})
-    cloud = dataclasses.replace(cloud, attributes=ascii_attribute_names(cloud.attributes, clean(path)))
+    if fmt.name not in ("LAS", "LAZ"):  # the LAS writer names its extra dimensions itself, ASCII included
+        cloud = dataclasses.replace(cloud, attributes=ascii_attribute_names(cloud.attributes, clean(path)))
     if fmt.name not in ("LAS", "LAZ") and cloud.source_format == "las" and "las_header" in cloud.meta:
         from gctr_cli.io.las import crs_description
 

@@ -12,7 +12,7 @@ import numpy as np
 from gctr_cli.geometry import coordinate_range_problem, robust_core
 from gctr_cli.io.errors import PointCloudError, clean
 
-__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "ascii_attribute_names", "eight_bit_colours",
+__all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "ascii_attribute_names", "ascii_name", "eight_bit_colours",
            "element_columns", "named_normals", "transform_cloud", "validate_cloud"]
 
 logger = logging.getLogger("gctr_cli.io")
@@ -259,7 +259,7 @@ def eight_bit_colours(attributes: dict[str, np.ndarray]) -> dict[str, np.ndarray
     return out
 
 
-def _ascii_name(name: str) -> str:
+def ascii_name(name: str) -> str:
     """``name`` in printable ASCII without blanks: accents dropped (``intensité`` -> ``intensite``), any
     other character as ``_``."""
     plain = unicodedata.normalize("NFKD", name).encode("ascii", "ignore").decode("ascii")
@@ -276,11 +276,11 @@ def ascii_attribute_names(attributes: dict[str, np.ndarray], where: str) -> dict
         return attributes
     out: dict[str, np.ndarray] = {}
     renamed = []
-    taken = {str(k) for k in attributes}
+    taken = {str(k) for k in attributes} | {"x", "y", "z", "X", "Y", "Z"}  # ``ẑ`` must not become ``z``
     for k, v in attributes.items():
         name = str(k)
         if not (name.isascii() and name.isprintable() and not any(c.isspace() for c in name)):
-            base = new = _ascii_name(name)
+            base = new = ascii_name(name)
             j = 2
             while new in taken:
                 new, j = f"{base}_{j}", j + 1

@@ -59,47 +59,98 @@ def _not_kept(path: Path, names: list[str], fields: list[set[str]], want_int: bo
         logger.warning("%s: not kept: %s", clean(path), "; ".join(parts), extra=ATTRIBUTE_NOTE)
 
 
-def _colour_limit(header) -> float | None:
-    """The largest colour value the scan's ``colorLimits`` allow, or None when it does not say."""
+def _colour_range(header, values: dict[str, np.ndarray]) -> tuple[float, float]:
+    """The range ``(lo, hi)`` of a scan's colours: its ``colorLimits``, else its integer prototype's
+    range, else the values' own (0..1 when they are fractions, 0..255 or 0..65535 by their largest)."""
     try:
         limits = header["colorLimits"]
-        return max(float(limits[f"color{c}Maximum"].value()) for c in ("Red", "Green", "Blue"))
+        return (min(float(limits[f"color{c}Minimum"].value()) for c in ("Red", "Green", "Blue")),
+                max(float(limits[f"color{c}Maximum"].value()) for c in ("Red", "Green", "Blue")))
     except Exception:  # noqa: BLE001 - an optional node; absent or odd means "not said"
+        pass
+    nodes = _colour_nodes(header)
+    if nodes is not None:
+        return float(min(lo for lo, _ in nodes)), float(max(hi for _, hi in nodes))
+    top = max((float(v.max()) for v in values.values() if len(v)), default=0.0)
+    fractional = any(len(v) and not np.array_equal(v, np.round(v)) for v in values.values())
+    return 0.0, 1.0 if top <= 1.0 and fractional else 255.0 if top <= 255 else max(top, 65535.0)
+
+
+def _colour_nodes(header) -> list[tuple[int, int]] | None:
+    """The ``(minimum, maximum)`` of the scan's colour fields when all three are integers, else None."""
+    from pye57 import libe57
+
+    try:
+        proto = libe57.StructureNode(header.points.prototype())
+        nodes = [proto.get(f) for f in _COLOR]
+        if any(n.type() != libe57.NodeType.E57_INTEGER for n in nodes):
+            return None
+        return [(int(libe57.IntegerNode(n).minimum()), int(libe57.IntegerNode(n).maximum())) for n in nodes]
+    except Exception:  # noqa: BLE001 - an unreadable prototype: read the colours as float64
         return None
 
 
-def _scan_colours(e57, header) -> dict[str, np.ndarray]:
-    """The colours of a scan (its ``header``) as float64, its invalid points dropped as pye57 drops them.
-
-    Read here, not by pye57's ``read_scan(colors=True)``, whose 8-bit buffers refuse the 16-bit colours
-    (limits 0..65535) that the standard allows and scanners write."""
+def _read_scan(e57, header, intensity: bool, colours: bool) -> dict[str, np.ndarray]:
+    """One pass over a scan: ``xyz`` in the file's frame (spherical converted, the pose applied), and
+    ``intensity`` and ``red green blue`` when asked, as pye57's ``read_scan`` gives them but for the
+    colours, read in a buffer of their own width (pye57's 8-bit buffers refuse the 16-bit colours the
+    standard allows and scanners write), their invalid points dropped alike."""
     from pye57 import libe57
+    from pye57.e57 import SUPPORTED_POINT_FIELDS, convert_spherical_to_cartesian
 
     n = int(header.point_count)
-    state = "cartesianInvalidState" if "cartesianX" in header.point_fields else "sphericalInvalidState"
-    fields = [*_COLOR, *([state] if state in header.point_fields else [])]
-    data = {f: np.empty(n, np.int8 if f == state else np.float64) for f in fields}
+    cartesian = "cartesianX" in header.point_fields
+    coords = (["cartesianX", "cartesianY", "cartesianZ"] if cartesian
+              else ["sphericalRange", "sphericalAzimuth", "sphericalElevation"])
+    state = "cartesianInvalidState" if cartesian else "sphericalInvalidState"
+    fields = coords + (["intensity"] if intensity else []) + (list(_COLOR) if colours else [])
+    fields += [state] if state in header.point_fields else []
+    colour_type: type = np.float64
+    nodes = _colour_nodes(header) if colours else None
+    if nodes is not None and min(lo for lo, _ in nodes) >= 0:
+        top = max(hi for _, hi in nodes)
+        colour_type = np.uint8 if top <= 255 else np.uint16 if top <= 65535 else np.float64
+    data = {f: np.empty(n, colour_type if f in _COLOR else SUPPORTED_POINT_FIELDS[f]) for f in fields}
     buffers = libe57.VectorSourceDestBuffer()
     for f in fields:
         buffers.append(libe57.SourceDestBuffer(e57.image_file, f, data[f], n, True, True))
     header.points.reader(buffers).read()
-    keep = data[state] == 0 if state in data else slice(None)
-    return {v: data[k][keep] for k, v in _COLOR.items()}
+    if state in data:
+        keep = data.pop(state) == 0
+        data = {k: v[keep] for k, v in data.items()}
+    xyz = np.stack([data.pop(c) for c in coords], axis=1).astype(np.float64, copy=False)
+    if not cartesian:
+        xyz = convert_spherical_to_cartesian(xyz)
+    if header.has_pose():
+        xyz = e57.to_global(xyz, header.rotation, header.translation)
+    out = {"xyz": xyz}
+    if intensity:
+        out["intensity"] = data["intensity"]
+    if colours:
+        rgb = {v: data[k] for k, v in _COLOR.items()}
+        out.update(_colour_bits(rgb, _colour_range(header, rgb)))
+    return out
 
 
-def _colour_type(parts: dict[str, list[np.ndarray]], limit: float | None) -> dict[str, np.ndarray]:
-    """Merged colours in the type their range needs: 8 bits for 0..255, 16 bits for 0..65535 (as LAS
-    stores them; the writers narrow them where a format holds 8), 0..1 floats as 8 bits. The range is
-    the scans' ``colorLimits`` when they give it (a dark 16-bit image stays 16-bit), else the values'."""
-    merged = {k: np.concatenate(v) for k, v in parts.items()}
-    top = limit if limit is not None else max((float(v.max()) for v in merged.values() if len(v)), default=0.0)
-    fractional = any(len(v) and not np.array_equal(v, np.round(v)) for v in merged.values())
-    if top <= 1.0 and fractional:
-        return {k: np.round(np.clip(v, 0, 1) * 255).astype(np.uint8) for k, v in merged.items()}
-    if top <= 255:
-        return {k: np.clip(np.round(v), 0, 255).astype(np.uint8) for k, v in merged.items()}
-    scale = 65535.0 / top if top > 65535 else 1.0
-    return {k: np.clip(np.round(v * scale), 0, 65535).astype(np.uint16) for k, v in merged.items()}
+def _colour_bits(rgb: dict[str, np.ndarray], limits: tuple[float, float]) -> dict[str, np.ndarray]:
+    """A scan's colours by its own range ``limits``: 0..255 kept as 8 bits, 0..65535 as 16 bits (as LAS
+    stores them), any other range (0..1 floats, 12-bit 0..4095) stretched to 16 bits."""
+    lo, hi = limits
+    if lo == 0 and hi == 255:
+        return {k: np.clip(np.round(v), 0, 255).astype(np.uint8) for k, v in rgb.items()}
+    if lo == 0 and hi == 65535:
+        return {k: np.clip(np.round(v), 0, 65535).astype(np.uint16) for k, v in rgb.items()}
+    span = hi - lo if hi > lo else 1.0
+    return {k: np.clip(np.round((v.astype(np.float64) - lo) / span * 65535), 0, 65535).astype(np.uint16)
+            for k, v in rgb.items()}
+
+
+def _merged_colours(parts: dict[str, list[np.ndarray]]) -> dict[str, np.ndarray]:
+    """The scans' colours in one array each: 8 bits when every scan's are, else 16 (8-bit ones × 257)."""
+    if all(a.dtype == np.uint8 for v in parts.values() for a in v):
+        return {k: np.concatenate(v) for k, v in parts.items()}
+    return {k: np.concatenate([a.astype(np.uint16) * (257 if a.dtype == np.uint8 else 1) for a in v])
+            for k, v in parts.items()}
 
 
 def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
@@ -150,39 +201,19 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         parts: list[np.ndarray] = []
         attrs: dict[str, list[np.ndarray]] = {"intensity": []} if want_int else {}
         colours: dict[str, list[np.ndarray]] = {v: [] for v in _COLOR.values()}
-        limits: list[float | None] = []
         for i in range(n_scans):
             try:
-                data = e57.read_scan(i, intensity=want_int, transform=True, ignore_missing_fields=True)
+                data = _read_scan(e57, e57.get_header(i), want_int, want_rgb)
             except MemoryError:
                 raise PointCloudError(f"{path}: too large to load into memory ({total} points)") from None
             except Exception as exc:  # noqa: BLE001
                 raise corrupt(exc, f"the points of scan {i} cannot be decoded") from None
-            xyz = np.stack([np.asarray(data[k], dtype=np.float64) for k in ("cartesianX", "cartesianY", "cartesianZ")],
-                           axis=1)
-            parts.append(xyz)
+            parts.append(data["xyz"])
             if want_int:
                 attrs["intensity"].append(np.asarray(data["intensity"]))
-            if want_rgb:
-                h = e57.get_header(i)
-                try:
-                    scan_rgb = _scan_colours(e57, h)
-                except MemoryError:
-                    raise PointCloudError(f"{path}: too large to load into memory ({total} points)") from None
-                except Exception as exc:  # the points are fine; only the colours are lost
-                    logger.debug("%s: colours of scan %d", path, i, exc_info=exc)
-                    logger.warning("%s: colours not kept: those of %s cannot be decoded", clean(path), names[i],
-                                   extra=ATTRIBUTE_NOTE)
-                    want_rgb = False
-                    continue
-                if len(scan_rgb["red"]) != len(xyz):  # invalid points judged otherwise: better none than shifted
-                    logger.warning("%s: colours not kept: %s has %d colours for %d points", clean(path), names[i],
-                                   len(scan_rgb["red"]), len(xyz), extra=ATTRIBUTE_NOTE)
-                    want_rgb = False
-                    continue
-                limits.append(_colour_limit(h))
-                for k, v in scan_rgb.items():
-                    colours[k].append(v)
+            for k in colours:
+                if want_rgb:
+                    colours[k].append(data[k])
     finally:
         try:
             e57.close()
@@ -196,7 +227,6 @@ def read_e57(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
                        clean(path), invalid, total)
     out = {k: np.concatenate(v) for k, v in attrs.items() if v}
     if want_rgb and colours["red"]:
-        limit = None if any(x is None for x in limits) else max(x for x in limits if x is not None)
-        out.update(_colour_type(colours, limit))
+        out.update(_merged_colours(colours))
     return PointCloud(pts, {k: v for k, v in out.items() if len(v) == len(pts)}, "e57",
                       {"e57_scans": n_scans})

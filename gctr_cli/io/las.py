@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud, element_columns, integer_misfit
+from gctr_cli.io.cloud import PointCloud, ascii_name, element_columns, integer_misfit
 from gctr_cli.io.errors import PointCloudError, clean, quote
 
 __all__ = ["crs_description", "las_bytes", "read_las"]
@@ -604,31 +604,36 @@ def _standard_case(names: set[str], attrs: dict[str, np.ndarray], point_format: 
     return out
 
 
-def _extra_names(standard: set[str], attrs: dict[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
-    """``attrs`` with every name that will be an extra dimension made an identifier of at most
+def _extra_names(standard: set[str], attrs: dict[str, np.ndarray],
+                 where: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """``attrs`` with every name that will be an extra dimension made an ASCII identifier of at most
     :data:`EXTRA_NAME_BYTES` (a CloudCompare scalar field such as ``scalar_C2C_absolute_distances_(XY)``
-    is neither), the names kept distinct; the renamed ones are named in one warning."""
-    taken = set(attrs)
+    is neither; ``intensité`` becomes ``intensite``), distinct from every other name, the coordinates'
+    and the standard dimensions' (``(z)`` is ``z_2``, not ``z``); and the map from each new name to the
+    old one. The renamed ones are named in one warning."""
+    taken = set(attrs) | set(standard) | {"X", "Y", "Z", "x", "y", "z"}
     renamed = {}
-    for k in attrs:
-        if k in standard or k in ("X", "Y", "Z", "x", "y", "z"):
+    for k, v in attrs.items():
+        if k in standard or k in ("X", "Y", "Z", "x", "y", "z") or v.dtype.kind not in "fiu":
             continue
-        new = k if k.isidentifier() else re.sub(r"_*\W+_*", "_", k).strip("_") or "attribute"
+        new = k if k.isidentifier() and k.isascii() else re.sub(r"_*\W+_*", "_", ascii_name(k)).strip("_")
+        new = new or "attribute"
         new = "_" + new if new[0].isdigit() else new
-        new = new.encode("utf-8")[:EXTRA_NAME_BYTES].decode("utf-8", "ignore")
+        new = new[:EXTRA_NAME_BYTES]
         if new == k:
             continue
-        base, j = new, 2
+        base, j = new, 1
         while new in taken:
-            tail = f"_{j}"
-            new = base.encode("utf-8")[:EXTRA_NAME_BYTES - len(tail)].decode("utf-8", "ignore").rstrip("_") + tail
             j += 1
+            tail = f"_{j}"
+            new = base[:EXTRA_NAME_BYTES - len(tail)].rstrip("_") + tail
         taken.add(new)
         renamed[k] = new
     if renamed:
-        logger.warning("%s: attribute names changed for LAS extra dimensions (at most %d bytes of letters, digits "
-                       "and _): %s", where, EXTRA_NAME_BYTES, ", ".join(f"{k!r} as {v!r}" for k, v in renamed.items()))
-    return {renamed.get(k, k): v for k, v in attrs.items()}
+        logger.warning("%s: attribute names changed for LAS extra dimensions (at most %d bytes of ASCII letters, "
+                       "digits and _, unlike the standard dimensions' names): %s", where, EXTRA_NAME_BYTES,
+                       ", ".join(f"{k!r} as {v!r}" for k, v in renamed.items()))
+    return {renamed.get(k, k): v for k, v in attrs.items()}, {v: k for k, v in renamed.items()}
 
 
 def _extra_dim(name: str, values: np.ndarray, source_dim: Any) -> Any:
@@ -663,10 +668,12 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     # flags as 0/1; LAS extra bytes have no 16-bit float
     attrs = {k: v.astype(np.uint8) if v.dtype.kind == "b" else v.astype(np.float32) if v.dtype == np.float16 else v
              for k, v in attrs.items()}
-    if len({k.lower() for k in attrs} & set(_RGB)) == 3 and not set(_RGB) & set(attrs):
-        attrs = _standard_case(set(_RGB), attrs)  # ``Red Green Blue``: a point format with colours
-    has_rgb = all(k in attrs for k in _RGB)
     source = cloud.meta.get("las_header") if cloud.source_format == "las" else None
+    if source is None and len({k.lower() for k in attrs} & set(_RGB)) == 3 and not set(_RGB) & set(attrs):
+        mapped = _standard_case(set(_RGB), attrs, laspy.PointFormat(7))
+        if set(_RGB) <= set(mapped):  # ``Red Green Blue`` that fit LAS colours: a point format with colours
+            attrs = mapped
+    has_rgb = all(k in attrs for k in _RGB)
     if source is not None and (not has_rgb or "red" in source.point_format.dimension_names):
         # laspy writes LAS 1.1-1.4; 1.2 has the point formats of 1.0 (0 and 1) and the same header
         version = "1.2" if str(source.version) == "1.0" else str(source.version)
@@ -676,16 +683,17 @@ def las_bytes(cloud: PointCloud, compress: bool, path: Path | None = None) -> by
     if source is not None:
         _carry_header(header, source, where)
     standard = set(header.point_format.dimension_names)
-    attrs = _standard_case(standard, attrs, header.point_format)
+    if source is None:  # a LAS source's own extra dimensions stay what they were
+        attrs = _standard_case(standard, attrs, header.point_format)
     _scan_angle_as(standard, attrs)
     source_extra = {d.name: d for d in source.point_format.extra_dimensions} if source is not None else {}
     attrs = _join_elements(source_extra, attrs)
-    attrs = _extra_names(standard, attrs, where)
+    attrs, old_names = _extra_names(standard, attrs, where)
     extra = [k for k, v in attrs.items() if k not in standard and v.dtype.kind in "fiu" and k.isidentifier()]
     for k in sorted(attrs.keys() - standard - set(extra) - {"X", "Y", "Z", "x", "y", "z"}):
         logger.warning("%s: attribute %r not written (LAS extra bytes hold numbers)", where, k)
     if extra:
-        header.add_extra_dims([_extra_dim(k, attrs[k], source_extra.get(k)) for k in extra])
+        header.add_extra_dims([_extra_dim(k, attrs[k], source_extra.get(old_names.get(k, k))) for k in extra])
     if not n:
         so = [(0.001, 0.0)] * 3
     elif source is not None:

@@ -85,7 +85,8 @@ def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
         raise PointCloudError(f"{path}: not a PLY file (missing 'ply' magic)")
     if magic[3:4] == b"\r" and fh.read(1) != b"\n":
         raise PointCloudError(f"{path}: PLY header lines end in a carriage return only (classic Mac OS line ends); "
-                              "PLY needs LF or CR LF line ends: convert the file (e.g. tr '\\r' '\\n')")
+                              "PLY needs LF or CR LF line ends: convert them (an ASCII PLY with e.g. tr '\\r' '\\n'; "
+                              "in a binary PLY only the header's)")
     fmt, elements, header_lines = _parse_header(fh, path)
     data_bytes = size - fh.tell()
 
