@@ -36,7 +36,7 @@ Exit codes:
      or the batch had to stop (the finished pairs are saved: --resume)
   3  --min-success given and the success rate over pairs with ground
      truth is below it (takes precedence over 1)
-  130/143  stopped by Ctrl-C / SIGTERM (finished pairs saved: --resume)"""
+  130/143  stopped by Ctrl-C / SIGTERM (129: SIGHUP; finished pairs saved: --resume)"""
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -141,24 +141,43 @@ def _fmt_confidence(x: float | None) -> str:
 
 
 class _Terminated(KeyboardInterrupt):
-    """SIGTERM, handled like Ctrl-C."""
+    """SIGTERM or SIGHUP, handled like Ctrl-C; ``signum`` says which (the exit code is 128 + it)."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__()
+        self.signum = signum
+
+
+def _stop_signal(exc: BaseException) -> int:
+    """The signal that stopped the command: SIGTERM/SIGHUP for :class:`_Terminated`, else SIGINT."""
+    for e in (exc, exc.__cause__):
+        if isinstance(e, _Terminated):
+            return e.signum
+    return signal.SIGINT
 
 
 @contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM (e.g. from a job scheduler) stops the batch like Ctrl-C: workers killed, lock released."""
+    """SIGTERM (e.g. from a job scheduler) and SIGHUP (a closed ssh session or terminal) stop the batch like
+    Ctrl-C: workers killed, lock released, a report written. A SIGHUP that is ignored (``nohup``) stays
+    ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
     def handler(signum, frame):  # noqa: ARG001
-        raise _Terminated
+        raise _Terminated(signum)
 
-    previous = signal.signal(signal.SIGTERM, handler)
+    signals = [signal.SIGTERM]
+    hup = getattr(signal, "SIGHUP", None)
+    if hup is not None and signal.getsignal(hup) is not signal.SIG_IGN:
+        signals.append(hup)
+    previous = {s: signal.signal(s, handler) for s in signals}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, before in previous.items():
+            signal.signal(s, before)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -200,9 +219,9 @@ def run() -> None:
         click.echo(f"gctr: error: {exc.format_message()}", err=True)
         code = exc.exit_code
     except (click.exceptions.Abort, KeyboardInterrupt) as exc:  # Ctrl-C / SIGTERM outside a batch (it has its own)
-        terminated = isinstance(exc, _Terminated) or isinstance(exc.__cause__, _Terminated)
-        click.echo(f"gctr: {'terminated' if terminated else 'interrupted'}", err=True)
-        code = 128 + (signal.SIGTERM if terminated else signal.SIGINT)
+        stopped_by = _stop_signal(exc)
+        click.echo(f"gctr: {'interrupted' if stopped_by == signal.SIGINT else 'terminated'}", err=True)
+        code = 128 + stopped_by
     except SystemExit as exc:
         code = exc.code
     if not _ONE_SHOT:
@@ -677,7 +696,7 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
                        err=True)
         else:  # stopped before the first pair was recorded: the run removed what it had created
             click.echo("gctr: interrupted before the first pair finished; nothing was written", err=True)
-        sys.exit(128 + (signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT))
+        sys.exit(128 + _stop_signal(exc))
     finally:
         if bar is not None:
             bar.close()

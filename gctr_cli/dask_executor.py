@@ -239,15 +239,23 @@ def _start_local_cluster(n_workers: int) -> Any:
                           "distributed.nanny.pre-spawn-environ": pre_spawn}), warnings.catch_warnings():
         # the scheduler's HTTP routes move off a busy port 8787 with a UserWarning: not our concern
         warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-        with processes_ignore_ctrl_c():
-            return LocalCluster(
-                n_workers=n_workers,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-                silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
-                env=env,
-            )
+        cluster = None
+        try:
+            with processes_ignore_ctrl_c():  # a Ctrl-C meanwhile arrives when the cluster is up: closed then
+                cluster = LocalCluster(
+                    n_workers=n_workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
+                    env=env,
+                    preload=["gctr_cli.dask_preload"],  # the workers ignore Ctrl-C: the batch stops them
+                )
+        except KeyboardInterrupt:
+            if cluster is not None:
+                cluster.close()
+            raise
+        return cluster
 
 
 

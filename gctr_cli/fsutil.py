@@ -92,19 +92,22 @@ def single_thread_env() -> Iterator[None]:
 
 @contextmanager
 def processes_ignore_ctrl_c() -> Iterator[None]:
-    """Worker processes started within ignore SIGINT (Python keeps an ignored SIGINT in a new
-    interpreter): a Ctrl-C reaches the whole process group, and dask's workers printed a traceback
-    each before the batch shut them down. Stopping workers is the batch's business."""
+    """Worker processes started within never see SIGINT: it is blocked for the block, and a process
+    keeps the signal mask it was started with (through exec). A Ctrl-C reaches the whole process group,
+    and workers printed a traceback each (dask's, or the pool's while importing) before the batch shut
+    them down; stopping workers is the batch's business. Blocked, not ignored: a Ctrl-C pressed
+    meanwhile is delivered to this process when the block ends (it was lost while a dask cluster
+    started, and the batch ran to its end)."""
     import threading
 
-    if threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def set_parent_death_signal() -> None:

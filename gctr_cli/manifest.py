@@ -63,14 +63,33 @@ def pair_id_problem(pair_id: str) -> str | None:
     n_bytes = len(pair_id.encode("utf-8", "surrogatepass"))
     if n_bytes > MAX_PAIR_ID_BYTES:
         return f"is too long ({n_bytes} bytes in UTF-8, at most {MAX_PAIR_ID_BYTES})"
-    for bad, label in (("/", "'/'"), ("\\", "'\\'"), ("\x00", "NUL"), ("..", "'..'")):
+    for bad, label in (("/", "'/'"), ("\\", "'\\'"), ("\x00", "NUL")):
         if bad in pair_id:
             return f"contains {label}"
+    if pair_id in (".", ".."):  # a folder's name wherever a script makes one of it ('x..y' is a plain name)
+        return f"is {pair_id!r}"
+    if not _utf8(pair_id):
+        return "is not valid UTF-8"
     if any(ord(c) < 32 or ord(c) == 127 for c in pair_id):
         return "contains a control character"
     if pair_id != pair_id.strip():  # a manifest's cells are stripped: ' a' would be read back as 'a'
         return "begins or ends with blank space"
     return None
+
+
+def _utf8(text: str) -> bool:
+    """Whether ``text`` (a name from the file system) is valid UTF-8: a Latin-1 ``café.ply`` of an old share
+    comes as ``caf\\udce9.ply``, which no UTF-8 file (a manifest, transforms.csv) can hold."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def shown_name(text: str) -> str:
+    """``text`` for a message, its undecodable bytes as ``\\xe9``."""
+    return os.fsencode(text).decode("utf-8", "backslashreplace") if not _utf8(text) else text
 
 
 def _listing(items: Sequence[str]) -> str:
@@ -96,7 +115,7 @@ def read_manifest(path: str | Path) -> list[PairSpec]:
 
     Raises :class:`ManifestError` for: a missing/unreadable/empty file, a missing required column,
     duplicate column names, an empty ``pair_id``/``source``/``target`` cell, a ``pair_id`` that is
-    unsafe as a file name (``/``, ``\\``, NUL, ``..``, control characters), a duplicate ``pair_id``,
+    unsafe as a file name (``/``, ``\\``, NUL, ``.`` or ``..``, control characters, not UTF-8), a duplicate ``pair_id``,
     or a manifest without data rows. All row problems are reported together, with line numbers.
     """
     path = Path(path)
@@ -163,14 +182,20 @@ def read_manifest(path: str | Path) -> list[PairSpec]:
                 errors.extend(row_errors)
                 continue
             gt_cell = cells.get("gt", "")
-            pairs.append(
-                PairSpec(
-                    pair_id=pid,
-                    source=_resolve(cells["source"], base),
-                    target=_resolve(cells["target"], base),
-                    gt=_resolve(gt_cell, base) if gt_cell else None,
-                )
+            spec = PairSpec(
+                pair_id=pid,
+                source=_resolve(cells["source"], base),
+                target=_resolve(cells["target"], base),
+                gt=_resolve(gt_cell, base) if gt_cell else None,
             )
+            # the folder a relative path is resolved in may have a Latin-1 name, which no UTF-8 row can hold
+            odd = [f"{c} {shown_name(str(v))}" for c, v in (("source", spec.source), ("target", spec.target),
+                                                             ("gt", spec.gt)) if v is not None and not _utf8(str(v))]
+            if odd:
+                errors.append(f"line {line}: path not valid UTF-8 ({'; '.join(odd)}): gctr's CSV files are UTF-8 "
+                              "text; rename the folder or file")
+                continue
+            pairs.append(spec)
     except csv.Error as exc:
         raise ManifestError(f"{path}: line {reader.line_num}: malformed CSV ({exc})") from exc
 
@@ -243,13 +268,21 @@ def write_manifest(path: str | Path, pairs: Sequence[PairSpec], *, relative_to: 
 def _cloud_files_by_stem(folder: Path, role: str) -> tuple[dict[str, Path], dict[str, list[Path]]]:
     """The point cloud files of ``folder`` by stem, and those of the stems held by several files (left out)."""
     found: dict[str, list[Path]] = {}
+    not_utf8 = []
     for f in sorted(folder.iterdir()):
         # a link counts whatever it points to (a DVC cache file without extension, or something
         # unreadable: the pair's row then says what is wrong with it)
         hidden_or_other = f.name.startswith(".") or f.suffix.lower() not in FOLDER_EXTENSIONS
         if hidden_or_other or not (f.is_symlink() or f.is_file()):
             continue
+        if not _utf8(f.name):
+            not_utf8.append(shown_name(f.name))
+            continue
         found.setdefault(f.stem, []).append(f)
+    if not_utf8:  # one odd name must not cost a nightly run its other pairs: left out, with a warning
+        logger.warning("%s: %s folder has point cloud files whose names are not valid UTF-8, left out (rename "
+                       "them: a manifest and gctr's CSV files are UTF-8 text): %s", shown_name(str(folder)), role,
+                       _listing(not_utf8))
     ambiguous = {s: fs for s, fs in found.items() if len(fs) > 1}
     if ambiguous:  # one such stem must not cost a nightly run its other pairs: left out, with a warning
         desc = _listing([f"{s} ({', '.join(f.name for f in fs)})" for s, fs in sorted(ambiguous.items())])
@@ -318,6 +351,9 @@ def build_manifest(
         if not d.is_dir():
             raise ManifestError(f"{d}: {role} folder does not exist" if not d.exists()
                                 else f"{d}: {role} path is not a folder")
+        if not _utf8(str(_absolute(d))):
+            raise ManifestError(f"{shown_name(str(_absolute(d)))}: {role} folder's path is not valid UTF-8, which "
+                                "a manifest (UTF-8 text) cannot hold: rename the folder")
     if os.path.realpath(sdir) == os.path.realpath(tdir):
         raise ManifestError(f"{sdir}: source and target folders are the same; every file would pair with itself")
 

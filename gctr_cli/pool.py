@@ -23,7 +23,7 @@ from typing import Any
 
 from gctr_cli.allocator import keep_freed_memory
 from gctr_cli.config import Config
-from gctr_cli.fsutil import THREAD_ENV_VARS, set_parent_death_signal, single_thread_env
+from gctr_cli.fsutil import THREAD_ENV_VARS, processes_ignore_ctrl_c, set_parent_death_signal, single_thread_env
 from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
 from gctr_cli.pair import limit_native_threads, resolve_register_fn, run_pair
 
@@ -144,7 +144,7 @@ class _Worker:
             name="gctr-worker",
             daemon=True,
         )
-        with single_thread_env():
+        with single_thread_env(), processes_ignore_ctrl_c():  # no KeyboardInterrupt while it imports
             self.process.start()
         child_conn.close()
         self.spec: Any = None

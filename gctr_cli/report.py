@@ -573,5 +573,6 @@ def write_report(outdir: str | Path, *, summary: Any = None, config: Any = None)
     outdir = Path(outdir)
     text = render_report(outdir, summary=summary, config=config)
     path = outdir / "report.html"
-    atomic_write(path, text)
+    # a folder name that is not UTF-8 (a Latin-1 share) is shown as \xe9 rather than failing the report
+    atomic_write(path, text.encode("utf-8", "backslashreplace"))
     return path

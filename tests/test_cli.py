@@ -566,10 +566,19 @@ def _signal_when(proc: subprocess.Popen, ready, sig: int, timeout: float = 60) -
             proc.wait()
 
 
-@pytest.mark.slow
-def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, subprocess_env):
+def _default_sighup() -> None:
     import signal
 
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a test run under nohup would hand its child an ignored one
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, subprocess_env, signame):
+    """SIGHUP (a closed ssh session) killed the batch as SIGKILL would: no message, no report, a stale lock."""
+    import signal
+
+    sig = getattr(signal, signame)
     for i in range(6):
         dataset.add_pair(f"p{i}", exts=((".ply", ".pcd"), (".xyz", ".ply"))[i % 2])
     manifest = dataset.manifest()
@@ -577,13 +586,14 @@ def test_sigterm_stops_the_batch_cleanly_and_resume_finishes(dataset, tmp_path, 
     driver.write_text(CLI_DRIVER)
     out = tmp_path / "out"
     cmd = [PYTHON, str(driver), "batch", str(manifest), "-o", str(out), "-j", "2"]
-    proc = subprocess.Popen(cmd, env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=subprocess_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sighup)
     transforms = out / "transforms.csv"
-    stderr = _signal_when(proc, lambda: transforms.exists() and transforms.read_bytes().count(b"\n") >= 2,
-                          signal.SIGTERM)
-    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    stderr = _signal_when(proc, lambda: transforms.exists() and transforms.read_bytes().count(b"\n") >= 2, sig)
+    assert proc.returncode == 128 + sig, stderr
     assert "interrupted" in stderr and "--resume" in stderr
     assert not (out / batch.LOCK_NAME).exists()  # released on the way out
+    assert (out / "report.html").exists()
     n_before = len(read_csv(out / "transforms.csv")[1])
     assert 1 <= n_before < 6
 

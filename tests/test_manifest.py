@@ -166,7 +166,7 @@ def test_empty_cells(tmp_path, row, keyword):
 
 @pytest.mark.parametrize(
     "pair_id, keyword",
-    [("a/b", "'/'"), ("a\\b", "'\\'"), ("..", "'..'"), ("x..y", "'..'"), ("a\x00b", "NUL"), ("a\tb", "control")],
+    [("a/b", "'/'"), ("a\\b", "'\\'"), ("..", "is '..'"), (".", "is '.'"), ("a\x00b", "NUL"), ("a\tb", "control")],
 )
 def test_unsafe_pair_id(tmp_path, pair_id, keyword):
     m = write(tmp_path / "unsafe.csv", f'pair_id,source,target\n"{pair_id}",a.ply,b.ply\n')
@@ -409,11 +409,11 @@ def test_build_skips_unsafe_stems(tmp_path, caplog):
     src, tgt = empty_folders(tmp_path)
     for d in (src, tgt):
         (d / "good.ply").write_text("x")
-        (d / "bad..name.ply").write_text("x")
+        (d / "bad\tname.ply").write_text("x")
     with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
         pairs = build_manifest(src, tgt)
     assert [p.pair_id for p in pairs] == ["good"]
-    assert "bad..name" in caplog.text
+    assert "bad\\tname" in caplog.text and "control character" in caplog.text
 
 
 def test_a_record_spanning_lines_is_named_by_its_first_line(tmp_path):
@@ -424,3 +424,31 @@ def test_a_record_spanning_lines_is_named_by_its_first_line(tmp_path):
         read_manifest(path)
     assert "line 4: pair_id 'c\\nd' contains a control character" in str(ei.value)
     assert "line 6: empty 'target' cell" in str(ei.value)
+
+
+def test_names_that_are_not_utf8_are_left_out_or_refused_with_a_message(tmp_path, caplog):
+    """A Latin-1 ``café.ply`` of an old share: ``gctr manifest`` ended in a traceback and wrote nothing (one
+    file cost the night its other pairs); a manifest in a folder with such a name stopped ``gctr batch``
+    with a traceback and exit 1. ``x..y`` is a plain name (only '.' and '..' are not)."""
+    import os
+
+    for side in ("s", "t"):
+        (tmp_path / side).mkdir()
+        for name in (b"caf\xe9.ply", b"ok.ply", b"x..y.ply"):
+            with open(os.path.join(os.fsencode(tmp_path / side), name), "w") as fh:
+                fh.write("0 0 0\n")
+    with caplog.at_level(logging.WARNING, logger="gctr_cli"):
+        pairs = build_manifest(tmp_path / "s", tmp_path / "t")
+    assert [p.pair_id for p in pairs] == ["ok", "x..y"]
+    assert "names are not valid UTF-8, left out (rename them" in caplog.text and "caf\\xe9.ply" in caplog.text
+    write_manifest(tmp_path / "pairs.csv", pairs)
+
+    odd = os.path.join(os.fsencode(tmp_path), b"dir\xe9")
+    os.mkdir(odd)
+    with open(os.path.join(odd, b"pairs.csv"), "w") as fh:
+        fh.write("pair_id,source,target\nok,s/ok.ply,t/ok.ply\n")
+    with pytest.raises(ManifestError, match=r"line 2: path not valid UTF-8 \(source .*dir\\xe9/s/ok.ply"):
+        read_manifest(os.fsdecode(os.path.join(odd, b"pairs.csv")))
+    os.mkdir(os.path.join(odd, b"s"))
+    with pytest.raises(ManifestError, match=r"dir\\xe9/s: source folder's path is not valid UTF-8"):
+        build_manifest(os.fsdecode(os.path.join(odd, b"s")), tmp_path / "t")
