@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import signal
+import tempfile
 import time
 from dataclasses import replace
 
@@ -58,7 +59,8 @@ def register(source, target, config=None, seed=0):
     n = len(source)
     if n == KILL_N:
         os.kill(os.getpid(), signal.SIGKILL)
-    if n == SLEEP_N:
+    if n == SLEEP_N:  # as a LAZ read does, it leaves a temporary file that only its worker's end can remove
+        tempfile.mkstemp(prefix="fake-engine-")
         time.sleep(120)
     if n == RAISE_N:
         raise ValueError("degenerate input: the source cloud is planar")

@@ -634,6 +634,9 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         _die("--scheduler needs --executor dask")
     if retry_failed and not resume:
         _die("--retry-failed needs --resume (it runs again the failed pairs of an earlier run in OUTDIR)")
+    if scheduler and workers is not None:  # the cluster's workers run the pairs, as many as it has
+        logger.warning("-j %d has no effect with --scheduler: the cluster's workers run the pairs (start fewer "
+                       "workers, or give them fewer threads, to run fewer at a time)", workers)
     config = _load_config(config_path, runs_here=scheduler is None)  # a LocalCluster runs here too
     from gctr_cli import batch as batch_mod
     from gctr_cli.manifest import ManifestError, read_manifest

@@ -224,6 +224,10 @@ def check_same_config(outdir: Path, config: Config) -> None:
     """On resume the engine/seed/success settings must match the ones the folder was started with."""
     path = outdir / CONFIG_FILE
     if not path.exists():
+        if _has_data_rows(outdir / TRANSFORMS_FILE):  # deleted: nothing says what the rows were made with
+            raise BatchError(f"cannot resume: {path}, the config the rows of {outdir / TRANSFORMS_FILE} were made "
+                             "with, is missing, so this run's config cannot be checked against it: restore it "
+                             "(or copy the config of that run there), or choose another output folder")
         return
     try:
         old = load_config(path)
@@ -239,6 +243,16 @@ def check_same_config(outdir: Path, config: Config) -> None:
             f"cannot resume: the config differs from {path} ({shown}{more}); resume with "
             f"-c {path} or choose another output folder"
         )
+
+
+def _has_data_rows(path: Path) -> bool:
+    """Whether the CSV file ``path`` exists and holds a line after its header."""
+    try:
+        with open(path, "rb") as fh:
+            fh.readline()
+            return bool(fh.readline().strip())
+    except OSError:
+        return False
 
 
 def case_insensitive(folder: Path) -> bool:
@@ -360,6 +374,8 @@ def _changed_inputs(outdir: Path, rows: list[dict[str, str]], with_errors: set[s
         if (not why and aligned_wanted and row["status"] == "ok" and not gone  # (a file gone: the row stays)
                 and not aligned_path(outdir, pid, now["source"]).exists()):
             why.append("no aligned cloud yet (--write-aligned)")
+        if not why and row["status"] == "ok" and not gone and not (outdir / MATRICES_DIR / f"{pid}.txt").exists():
+            why.append(f"its matrix {MATRICES_DIR}/{pid}.txt is missing")  # deleted since: made again
         if why:
             changed[pid] = "; ".join(why)
     return changed

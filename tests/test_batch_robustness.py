@@ -318,6 +318,17 @@ def test_a_finished_run_keeps_the_folders_on_the_path_it_was_given(four_pairs, f
     assert not (tmp_path / "new2").exists() and (tmp_path / "results" / "transforms.csv").is_file()
 
 
+def test_resume_without_the_config_of_the_rows_is_refused(four_pairs, fast_config, tmp_path):
+    """config.yaml deleted: --resume took any config and rewrote config.yaml beside rows made with another."""
+    out = tmp_path / "out"
+    run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+    (out / "config.yaml").unlink()
+    other = fast_config.model_copy(update={"seed": fast_config.seed + 1})
+    with pytest.raises(BatchError, match=r"cannot resume: .*config.yaml, the config the rows of .* is missing"):
+        run_batch(four_pairs.specs(), other, out, resume=True, workers=1, register_fn=fake_engine.register)
+    assert not (out / "config.yaml").exists()
+
+
 def test_an_output_folder_name_the_system_refuses_is_exit_2(four_pairs, tmp_path, fake_batch):
     result = invoke("batch", four_pairs.manifest(), "-o", tmp_path / ("a" * 300) / "out", "-q")
     assert result.exit_code == 2 and "cannot create output folder" in result.output

@@ -458,6 +458,21 @@ def test_batch_exit_1_and_3(runner, fake_batch, four_pairs, tmp_path):
     assert "success rate 0.8 (4 of 5 pairs with ground truth) is below --min-success 0.80000001" in res.stderr
 
 
+def test_workers_with_a_scheduler_are_said_to_have_no_effect(runner, monkeypatch, four_pairs, tmp_path):
+    """-j with --scheduler was accepted without a word: the cluster's workers decide how many pairs run."""
+    seen = {}
+
+    def stop(*a, **k):
+        seen.update(k)
+        raise batch.BatchError("stopped by the test")
+
+    monkeypatch.setattr(batch, "run_batch", stop)
+    res = invoke(runner, "batch", four_pairs.manifest(), "-o", tmp_path / "out", "-j", 5, "--scheduler",
+                 "tcp://127.0.0.1:1")
+    assert res.exit_code == 2 and seen.get("scheduler") == "tcp://127.0.0.1:1"
+    assert "-j 5 has no effect with --scheduler" in res.stderr
+
+
 def test_batch_exit_2_nothing_run(runner, monkeypatch, four_pairs, tmp_path):
     def must_not_run(*a, **k):  # pragma: no cover
         raise AssertionError("run_batch called")
