@@ -239,23 +239,15 @@ def _start_local_cluster(n_workers: int) -> Any:
                           "distributed.nanny.pre-spawn-environ": pre_spawn}), warnings.catch_warnings():
         # the scheduler's HTTP routes move off a busy port 8787 with a UserWarning: not our concern
         warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-        cluster = None
-        try:
-            with processes_ignore_ctrl_c():  # a Ctrl-C meanwhile arrives when the cluster is up: closed then
-                cluster = LocalCluster(
-                    n_workers=n_workers,
-                    threads_per_worker=1,
-                    processes=True,
-                    dashboard_address=None,
-                    silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
-                    env=env,
-                    preload=["gctr_cli.dask_preload"],  # the workers ignore Ctrl-C: the batch stops them
-                )
-        except KeyboardInterrupt:
-            if cluster is not None:
-                cluster.close()
-            raise
-        return cluster
+        return LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
+            env=env,
+            preload=["gctr_cli.dask_preload"],  # the workers ignore Ctrl-C: the batch stops them
+        )
 
 
 
@@ -270,17 +262,25 @@ def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
             raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {exc_message(exc)}") from None
         logger.info("connected to the dask scheduler at %s", scheduler)
         return client, None
+    cluster: Any = None
+    local_client: Any = None
     try:
-        cluster = _start_local_cluster(n_workers)
-    except Exception as exc:  # noqa: BLE001
-        raise BatchError(f"cannot start a dask LocalCluster: {exc_message(exc)}") from None
-    try:
-        client = Client(cluster, set_as_default=False)
+        # a Ctrl-C or SIGTERM meanwhile arrives when the cluster and its client are up, and closes them
+        # (stopped half-started, they printed tracebacks from their exit handlers)
+        with processes_ignore_ctrl_c(hold_sigterm=True):
+            try:
+                cluster = _start_local_cluster(n_workers)
+            except Exception as exc:  # noqa: BLE001
+                raise BatchError(f"cannot start a dask LocalCluster: {exc_message(exc)}") from None
+            local_client = Client(cluster, set_as_default=False)
     except BaseException:
-        cluster.close()
+        if local_client is not None:
+            local_client.close()
+        if cluster is not None:
+            cluster.close()
         raise
     logger.info("started a dask LocalCluster with %d worker processes at %s", n_workers, cluster.scheduler_address)
-    return client, cluster
+    return local_client, cluster
 
 
 class _InFlight:
@@ -525,7 +525,10 @@ def dask_outcomes(
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close(timeout=10)
-        quiet.restore()
+        if sys.exc_info()[0] is None:
+            quiet.restore()
+        # else (Ctrl-C, SIGTERM, a lost scheduler) the process is ending: the half-closed connections'
+        # records, logged until it has, stay off stderr too
 
 
 class _QuietDistributed:
@@ -533,7 +536,7 @@ class _QuietDistributed:
     while the client shuts down (they are tracebacks of a reconnection that no longer matters; gctr says
     what happened in one line), unless gctr logs at DEBUG level (``-vv``)."""
 
-    NAMES = ("distributed", "tornado")
+    NAMES = ("distributed", "tornado", "asyncio")  # asyncio: "Future exception was never retrieved" of a closed comm
 
     def __init__(self) -> None:
         self.saved: dict[str, int] = {}

@@ -91,19 +91,21 @@ def single_thread_env() -> Iterator[None]:
 
 
 @contextmanager
-def processes_ignore_ctrl_c() -> Iterator[None]:
+def processes_ignore_ctrl_c(hold_sigterm: bool = False) -> Iterator[None]:
     """Worker processes started within never see SIGINT: it is blocked for the block, and a process
     keeps the signal mask it was started with (through exec). A Ctrl-C reaches the whole process group,
     and workers printed a traceback each (dask's, or the pool's while importing) before the batch shut
     them down; stopping workers is the batch's business. Blocked, not ignored: a Ctrl-C pressed
     meanwhile is delivered to this process when the block ends (it was lost while a dask cluster
-    started, and the batch ran to its end)."""
+    started, and the batch ran to its end). With ``hold_sigterm`` a SIGTERM waits for the block's end too
+    (a dask cluster stopped half-started printed tracebacks from its exit handlers)."""
     import threading
 
     if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM} if hold_sigterm
+                                      else {signal.SIGINT})
     try:
         yield
     finally:
