@@ -49,15 +49,14 @@ import sys
 import threading
 import time
 import uuid
-import warnings
 from collections import deque
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from gctr_cli.allocator import malloc_environment
 from gctr_cli.config import Config
+from gctr_cli.dask_cluster import connect
 from gctr_cli.errors import BatchError, ExecutorLost
-from gctr_cli.fsutil import THREAD_ENV_VARS, processes_ignore_ctrl_c
+from gctr_cli.fsutil import THREAD_ENV_VARS
 from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
 from gctr_cli.pair import limit_native_threads, resolve_register_fn, run_pair
 
@@ -74,7 +73,6 @@ INSTALL_HINT = "pip install 'gctr-cli[dask]'"
 PLUGIN_NAME = "gctr-worker-setup"  #: name of the worker plugin (re-registering replaces it)
 #: a task lost with a worker killed by gctr (time limit) or by another pair is resubmitted at most this often
 MAX_RESUBMITS = 2
-CONNECT_TIMEOUT_S = 30.0  #: seconds to wait for the scheduler when connecting
 POLL_S = 0.5  #: the loop wakes up at least this often (new workers, time limits, lost scheduler)
 WAITING_LOG_S = 10.0  #: seconds with no pair started before the batch says it waits for workers
 #: tasks in flight per worker thread: one running, one queued at the scheduler, so a worker starts its
@@ -206,81 +204,8 @@ def run_task(spec: Any, seed: int, config: Config, register_ref: str | None, sna
 
 
 # ----------------------------------------------------------------------------------------------------
-# the client side
+# the client side (connecting, or starting the local cluster: :mod:`gctr_cli.dask_cluster`)
 # ----------------------------------------------------------------------------------------------------
-
-
-#: what dask's nanny sets ``MALLOC_TRIM_THRESHOLD_`` to unless its config says otherwise
-DASK_DEFAULT_TRIM_THRESHOLD = 65536
-
-
-def _pre_spawn_environment(configured: dict[str, Any]) -> dict[str, Any]:
-    """The nanny's ``pre-spawn-environ`` for gctr's own LocalCluster: the configured one, with gctr's
-    malloc settings (:mod:`gctr_cli.allocator`) for dask's default ``MALLOC_TRIM_THRESHOLD_`` (a pair
-    takes 1.5x as long with it); other malloc settings are kept, and so is a variable already in the
-    environment (the nanny's rule). Set before a worker process starts, the only time glibc reads them."""
-    trim = configured.get("MALLOC_TRIM_THRESHOLD_")
-    if "MALLOC_MMAP_THRESHOLD_" in configured or trim not in (None, DASK_DEFAULT_TRIM_THRESHOLD,
-                                                              str(DASK_DEFAULT_TRIM_THRESHOLD)):
-        return dict(configured)
-    return {**configured, **malloc_environment()}
-
-
-def _start_local_cluster(n_workers: int) -> Any:
-    import dask
-    from distributed import LocalCluster
-
-    env = {var: "1" for var in THREAD_ENV_VARS}
-    pre_spawn = _pre_spawn_environment(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
-    # allowed-failures 0: a pair that kills its worker fails at once (as with the local pool);
-    # worker-saturation 1.0: a one-thread worker is sent one task at a time (a task starts when assigned)
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
-                          "distributed.scheduler.worker-saturation": 1.0,
-                          "distributed.nanny.pre-spawn-environ": pre_spawn}), warnings.catch_warnings():
-        # the scheduler's HTTP routes move off a busy port 8787 with a UserWarning: not our concern
-        warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-        return LocalCluster(
-            n_workers=n_workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=logging.CRITICAL,  # worker deaths are reported in the pairs' rows
-            env=env,
-            preload=["gctr_cli.dask_preload"],  # the workers ignore Ctrl-C: the batch stops them
-        )
-
-
-
-def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
-    """(client, cluster or None)."""
-    from distributed import Client
-
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-        except Exception as exc:  # noqa: BLE001 - OSError, TimeoutError, ValueError (bad address)
-            raise BatchError(f"cannot connect to the dask scheduler at {scheduler}: {exc_message(exc)}") from None
-        logger.info("connected to the dask scheduler at %s", scheduler)
-        return client, None
-    cluster: Any = None
-    local_client: Any = None
-    try:
-        # a Ctrl-C or SIGTERM meanwhile arrives when the cluster and its client are up, and closes them
-        # (stopped half-started, they printed tracebacks from their exit handlers)
-        with processes_ignore_ctrl_c(hold_sigterm=True):
-            try:
-                cluster = _start_local_cluster(n_workers)
-            except Exception as exc:  # noqa: BLE001
-                raise BatchError(f"cannot start a dask LocalCluster: {exc_message(exc)}") from None
-            local_client = Client(cluster, set_as_default=False)
-    except BaseException:
-        if local_client is not None:
-            local_client.close()
-        if cluster is not None:
-            cluster.close()
-        raise
-    logger.info("started a dask LocalCluster with %d worker processes at %s", n_workers, cluster.scheduler_address)
-    return local_client, cluster
 
 
 class _InFlight:
@@ -395,7 +320,7 @@ def dask_outcomes(
     from distributed import wait
 
     quiet = _QuietDistributed()
-    client, cluster = _connect(scheduler, max(1, min(n_workers, len(tasks))))
+    client, cluster = connect(scheduler, max(1, min(n_workers, len(tasks))))
     quiet.start()
     pending: deque[tuple[Any, int]] = deque(tasks)
     inflight: dict[Any, _InFlight] = {}

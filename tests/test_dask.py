@@ -21,7 +21,7 @@ distributed = pytest.importorskip("distributed")
 from conftest import bumpy_surface, read_csv, rotation, write_cloud, write_manifest_rows  # noqa: E402
 
 from data_scripts import fake_engine  # noqa: E402
-from gctr_cli import batch, cli, dask_executor  # noqa: E402
+from gctr_cli import batch, cli, dask_cluster, dask_executor  # noqa: E402
 from gctr_cli.batch import BatchError, derive_seed, run_batch  # noqa: E402
 from gctr_cli.config import config_from_dict  # noqa: E402
 from gctr_cli.geometry import apply, to_matrix  # noqa: E402
@@ -180,7 +180,7 @@ def test_cli_executor_usage_errors(four_pairs, tmp_path, monkeypatch):
     res = runner.invoke(cli.main, ["batch", manifest, "-o", str(tmp_path / "b"), "--executor", "ray"])
     assert res.exit_code == 2 and "'ray' is not one of" in res.stderr
     # nothing listens there: exit 2, nothing run, lock released
-    monkeypatch.setattr(dask_executor, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(dask_cluster, "CONNECT_TIMEOUT_S", 1.0)
     res = runner.invoke(cli.main, ["batch", manifest, "-o", str(tmp_path / "c"), "--scheduler", "tcp://127.0.0.1:9"])
     assert res.exit_code == 2
     assert "cannot connect to the dask scheduler at tcp://127.0.0.1:9" in res.stderr
@@ -256,11 +256,11 @@ def test_the_local_clusters_malloc_settings_keep_a_users_dask_config():
     from gctr_cli.allocator import malloc_environment
 
     dask_default = {"MALLOC_TRIM_THRESHOLD_": 65536, "OMP_NUM_THREADS": 1}
-    assert dask_executor._pre_spawn_environment(dask_default) == {"OMP_NUM_THREADS": 1, **malloc_environment()}
-    assert dask_executor._pre_spawn_environment({}) == malloc_environment()
+    assert dask_cluster._pre_spawn_environment(dask_default) == {"OMP_NUM_THREADS": 1, **malloc_environment()}
+    assert dask_cluster._pre_spawn_environment({}) == malloc_environment()
     for users in ({"MALLOC_TRIM_THRESHOLD_": 0}, {"MALLOC_MMAP_THRESHOLD_": 1 << 20},
                   {"MALLOC_TRIM_THRESHOLD_": "65536", "MALLOC_MMAP_THRESHOLD_": "131072"}):
-        assert dask_executor._pre_spawn_environment(users) == users
+        assert dask_cluster._pre_spawn_environment(users) == users
 
 
 def _default_sigint() -> None:

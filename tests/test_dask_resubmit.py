@@ -137,7 +137,7 @@ def run(monkeypatch: pytest.MonkeyPatch, fates: dict[str, list[str]],
         time_limit_s: float = 600.0) -> tuple[dict[str, PairOutcome], ScriptedClient]:
     """The outcomes of pairs ``a``, ``b`` (seeds 11, 12) under the scripted ``fates``."""
     client = ScriptedClient(fates)
-    monkeypatch.setattr(dask_executor, "_connect", lambda scheduler, n: (client, None))
+    monkeypatch.setattr(dask_executor, "connect", lambda scheduler, n: (client, None))
     monkeypatch.setattr(distributed, "wait", wait_for_done)
     specs = [PairSpec(pid, Path(f"{pid}_src.ply"), Path(f"{pid}_tgt.ply")) for pid in ("a", "b")]
     config = config_from_dict({}, "<test>")

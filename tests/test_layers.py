@@ -17,8 +17,8 @@ import pytest
 from conftest import REPO
 
 #: the modules of the batch layer (issue 12) and the report built on its summary
-BATCH_MODULES = ("batch", "executors", "pool", "dask_executor", "pair", "outcome", "outdir", "lock", "summary",
-                 "errors", "report")
+BATCH_MODULES = ("batch", "executors", "pool", "dask_executor", "dask_cluster", "pair", "outcome", "outdir", "lock",
+                 "summary", "errors", "report")
 MAX_LINES = 600
 
 
