@@ -3,7 +3,9 @@
 ``OUTDIR/.gctr.lock`` is created with ``O_CREAT | O_EXCL`` and holds ``pid start-time host``. A second
 batch on the same folder is refused (:class:`~gctr_cli.errors.LockError`); a lock left by a process
 that no longer runs (on this host; a reused pid is told apart by its start time) is stale and taken
-over.
+over. A process on another host cannot be asked, so the holder touches its lock every
+:data:`HEARTBEAT_S`; another host's lock untouched for :data:`STALE_AFTER_S` is stale (a Kubernetes
+CronJob pod evicted mid-run: every later pod has another host name, and each night was refused).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -22,6 +25,10 @@ logger = logging.getLogger(__name__)
 __all__ = ["LOCK_NAME", "OutdirLock"]
 
 LOCK_NAME = ".gctr.lock"
+#: seconds between two touches of a held lock (its modification time says the holder is alive)
+HEARTBEAT_S = 60.0
+#: a lock of another host untouched this long is stale (generous: clocks of two hosts may differ)
+STALE_AFTER_S = 900.0
 
 
 def _proc_stat(pid: int) -> list[str] | None:
@@ -66,6 +73,7 @@ class OutdirLock:
         self.path = Path(outdir) / LOCK_NAME
         self.content = f"{os.getpid()} {_process_start_time(os.getpid())} {socket.gethostname()}\n"
         self.held = False
+        self._beat = threading.Event()
 
     def _holder(self) -> tuple[str, bool]:
         """(description, alive) of the current lock holder."""
@@ -87,6 +95,8 @@ class OutdirLock:
         start = parts[1] if len(parts) > 1 else "?"
         host = parts[2] if len(parts) > 2 else socket.gethostname()
         if host != socket.gethostname():
+            if age >= STALE_AFTER_S:
+                return f"pid {pid} on host {host}, untouched for {age / 60:.0f} min", False
             return f"pid {pid} on host {host}", True
         return f"pid {pid}", _pid_alive(pid, start)
 
@@ -112,6 +122,9 @@ class OutdirLock:
             finally:
                 os.close(fd)
             self.held = True
+            self._beat = threading.Event()
+            threading.Thread(target=self._heartbeat, args=(self._beat,), name="gctr-lock-heartbeat",
+                             daemon=True).start()
             return
         raise LockError(f"could not acquire {self.path} (it keeps changing); is another batch starting?")
 
@@ -130,17 +143,29 @@ class OutdirLock:
                     pass
                 return
             logger.warning("removed a stale lock %s left by %s (that batch is no longer running; its pid may "
-                           "now be another process)", self.path, who)
+                           "now be another process)" if " on host " not in who else
+                           "removed a stale lock %s left by %s (a running batch touches its lock every minute)",
+                           self.path, who)
         finally:
             try:
                 aside.unlink()
             except FileNotFoundError:
                 pass
 
+    def _heartbeat(self, stop: threading.Event) -> None:
+        """Touch the lock every :data:`HEARTBEAT_S` until ``stop`` is set (a batch on another host tells a
+        running holder from one that died by the lock's age)."""
+        while not stop.wait(HEARTBEAT_S):
+            try:
+                os.utime(self.path)
+            except OSError:
+                pass  # gone or unwritable: the batch itself reports its folder's problems
+
     def release(self) -> None:
         if not self.held:
             return
         self.held = False
+        self._beat.set()
         try:
             if self.path.read_text() == self.content:
                 self.path.unlink()

@@ -633,6 +633,31 @@ def test_lock_is_exclusive_and_released():
         assert not (Path(d) / LOCK_NAME).exists()
 
 
+def test_a_lock_of_another_host_is_stale_once_its_holder_stops_touching_it(tmp_path, monkeypatch, caplog):
+    """Another host's process cannot be asked: every later run was refused (a Kubernetes CronJob pod evicted
+    mid-run; the next pods have other host names). A held lock is touched every HEARTBEAT_S; one untouched
+    for STALE_AFTER_S is taken over, a fresh one is not."""
+    from gctr_cli import lock as lock_mod
+
+    path = tmp_path / LOCK_NAME
+    path.write_text("12345 999 otherpod-7f9c\n")
+    with pytest.raises(LockError, match="pid 12345 on host otherpod-7f9c"):
+        batch.OutdirLock(tmp_path).acquire()
+    old = time.time() - lock_mod.STALE_AFTER_S - 60
+    os.utime(path, (old, old))
+    with caplog.at_level("WARNING", logger="gctr_cli"), batch.OutdirLock(tmp_path):
+        assert path.read_text().split()[0] == str(os.getpid())
+    assert "left by pid 12345 on host otherpod-7f9c, untouched for 16 min" in caplog.text
+    # the holder touches its lock while it runs
+    monkeypatch.setattr(lock_mod, "HEARTBEAT_S", 0.05)
+    with batch.OutdirLock(tmp_path):
+        os.utime(path, (old, old))
+        deadline = time.monotonic() + 5
+        while time.time() - path.stat().st_mtime > 60 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert time.time() - path.stat().st_mtime < 60
+
+
 def test_register_fn_must_be_importable_by_workers(dataset, fast_config, tmp_path):
     dataset.add_pair("a")
 
