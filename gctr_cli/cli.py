@@ -156,6 +156,15 @@ def _stop_signal(exc: BaseException) -> int:
     return signal.SIGINT
 
 
+def _say_stopped(line: str) -> None:
+    """Say on stderr why the command stopped, if stderr can still be written: after a SIGHUP from a
+    closed terminal it cannot (EIO), and the exit code must still say what stopped it, not 1."""
+    try:
+        click.echo(line, err=True)
+    except (OSError, ValueError):
+        pass
+
+
 @contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM (e.g. from a job scheduler) and SIGHUP (a closed ssh session or terminal) stop the batch like
@@ -220,7 +229,7 @@ def run() -> None:
         code = exc.exit_code
     except (click.exceptions.Abort, KeyboardInterrupt) as exc:  # Ctrl-C / SIGTERM outside a batch (it has its own)
         stopped_by = _stop_signal(exc)
-        click.echo(f"gctr: {'interrupted' if stopped_by == signal.SIGINT else 'terminated'}", err=True)
+        _say_stopped(f"gctr: {'interrupted' if stopped_by == signal.SIGINT else 'terminated'}")
         code = 128 + stopped_by
     except SystemExit as exc:
         code = exc.code
@@ -572,9 +581,10 @@ def _print_summary(summary: Any, config: Any) -> None:
         if len(s.misses) > 50:
             echo(f"  ... and {len(s.misses) - 50} more (see tm_errors.csv)")
     extras = "".join(f", {name}/" for name in ("snapshots", "aligned") if (Path(s.outdir) / name).is_dir())
-    echo(f"outputs: {s.outdir}/transforms.csv, tm_errors.csv, matrices/, config.yaml{extras}")
+    shown = os.fsencode(str(s.outdir)).decode("utf-8", "backslashreplace")  # a Latin-1 name: \xe9, no crash
+    echo(f"outputs: {shown}/transforms.csv, tm_errors.csv, matrices/, config.yaml{extras}")
     if s.report_written:
-        echo(f"report: {s.outdir}/report.html")
+        echo(f"report: {shown}/report.html")
 
 
 @main.command(epilog=EXIT_CODES_HELP)
@@ -695,10 +705,9 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         if bar is not None:
             bar.close()
         if _has_rows(outdir / batch_mod.TRANSFORMS_FILE):
-            click.echo(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish",
-                       err=True)
+            _say_stopped(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish")
         else:  # stopped before the first pair was recorded: the run removed what it had created
-            click.echo("gctr: interrupted before the first pair finished; nothing was written", err=True)
+            _say_stopped("gctr: interrupted before the first pair finished; nothing was written")
         sys.exit(128 + _stop_signal(exc))
     finally:
         if bar is not None:

@@ -2,9 +2,10 @@
 :mod:`gctr_cli.dask_executor`; and the preload of that local cluster's workers (:func:`dask_setup`).
 
 A terminal's Ctrl-C reaches the whole process group; stopping the workers is the batch's business, so
-each worker of the local cluster ignores SIGINT from its start on (a traceback per worker otherwise).
-That is set in the worker (its preload), in its main thread, because the batch cannot hand the workers
-an ignored SIGINT without ignoring a Ctrl-C itself while the cluster starts.
+each worker of the local cluster ignores SIGINT once its preload has run (a traceback per worker
+otherwise; one still importing may print one). That is set in the worker, in its main thread, because
+the batch cannot hand the workers an ignored SIGINT without ignoring a Ctrl-C itself while the cluster
+starts; a stop signal meanwhile is deferred until the cluster is up (:func:`connect`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import Any
 
 from gctr_cli.allocator import malloc_environment
 from gctr_cli.errors import BatchError
-from gctr_cli.fsutil import THREAD_ENV_VARS, processes_ignore_ctrl_c
+from gctr_cli.fsutil import THREAD_ENV_VARS, start_resource_tracker, stop_signals_deferred
 from gctr_cli.outcome import exc_message
 
 __all__ = ["CONNECT_TIMEOUT_S", "connect", "dask_setup"]
@@ -79,15 +80,22 @@ def connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
         return client, None
     cluster: Any = None
     local_client: Any = None
+    start_resource_tracker()
     try:
-        # a Ctrl-C or SIGTERM meanwhile arrives when the cluster and its client are up, and closes them
-        # (stopped half-started, they printed tracebacks from their exit handlers)
-        with processes_ignore_ctrl_c(hold_sigterm=True):
+        # a Ctrl-C, SIGTERM or SIGHUP meanwhile is acted on when the cluster and its client are up, which
+        # are closed then (stopped half-started, they printed tracebacks from their exit handlers)
+        failure = None
+        with stop_signals_deferred() as caught:
             try:
                 cluster = _start_local_cluster(n_workers)
             except Exception as exc:  # noqa: BLE001
-                raise BatchError(f"cannot start a dask LocalCluster: {exc_message(exc)}") from None
-            local_client = Client(cluster, set_as_default=False)
+                failure = exc
+            if failure is None and not caught:
+                local_client = Client(cluster, set_as_default=False)
+        if caught:  # first: the signal may be what failed the start (it reaches the workers too)
+            signal.raise_signal(caught[0])  # the handler of before: KeyboardInterrupt, or gctr's for SIGTERM
+        if failure is not None:
+            raise BatchError(f"cannot start a dask LocalCluster: {exc_message(failure)}") from None
     except BaseException:
         if local_client is not None:
             local_client.close()

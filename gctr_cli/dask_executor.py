@@ -143,9 +143,16 @@ class GctrWorkerSetup(_WorkerPluginBase):
         self.register_ref = register_ref
         self.snapshots = snapshots
 
-    def setup(self, worker: Any = None) -> None:  # noqa: ARG002
+    def setup(self, worker: Any = None) -> None:
         for var in THREAD_ENV_VARS:
             os.environ[var] = "1"
+        local = getattr(worker, "local_directory", None)
+        if local and os.path.isdir(local):
+            # temporary files (a LAZ file's decompressed copy) in the worker's own folder, which dask removes
+            # when the worker ends, and purges when a killed worker's replacement starts
+            import tempfile
+
+            tempfile.tempdir = str(local)
         try:
             import gctr_cli.io
 

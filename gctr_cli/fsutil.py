@@ -91,25 +91,70 @@ def single_thread_env() -> Iterator[None]:
 
 
 @contextmanager
-def processes_ignore_ctrl_c(hold_sigterm: bool = False) -> Iterator[None]:
-    """Worker processes started within never see SIGINT: it is blocked for the block, and a process
-    keeps the signal mask it was started with (through exec). A Ctrl-C reaches the whole process group,
-    and workers printed a traceback each (dask's, or the pool's while importing) before the batch shut
-    them down; stopping workers is the batch's business. Blocked, not ignored: a Ctrl-C pressed
-    meanwhile is delivered to this process when the block ends (it was lost while a dask cluster
-    started, and the batch ran to its end). With ``hold_sigterm`` a SIGTERM waits for the block's end too
-    (a dask cluster stopped half-started printed tracebacks from its exit handlers)."""
+def processes_ignore_ctrl_c() -> Iterator[None]:
+    """Processes started within ignore SIGINT (an ignored signal stays ignored through exec, and Python
+    then installs no KeyboardInterrupt handler): a Ctrl-C reaches the whole process group, and a worker
+    still importing printed a traceback; stopping workers is the batch's business. Keep the block short
+    (a process start): a Ctrl-C within it is lost for this process too."""
     import threading
 
-    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM} if hold_sigterm
-                                      else {signal.SIGINT})
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        signal.signal(signal.SIGINT, previous)
+
+
+#: the signals that stop a batch (SIGHUP where the platform has it)
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+@contextmanager
+def stop_signals_deferred() -> Iterator[list[int]]:
+    """Within the block, SIGINT, SIGTERM and SIGHUP are only recorded (in the yielded list), not acted on:
+    code that must not be cut in the middle (starting a dask cluster, which stopped half-started printed
+    tracebacks from its exit handlers) runs to its end; the caller then cleans up and acts on them (e.g.
+    with :func:`signal.raise_signal`, once the previous handlers are back). A signal ignored before (SIGHUP
+    under ``nohup``) stays ignored."""
+    import threading
+
+    caught: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+
+    def record(signum, frame):  # noqa: ARG001
+        caught.append(signum)
+
+    previous = {}
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            previous[sig] = signal.signal(sig, record)
+    try:
+        yield caught
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker now, with SIGHUP ignored: it ignores SIGINT and SIGTERM
+    itself but not SIGHUP, so a closed terminal killed it and the batch's orderly stop (closing the dask
+    cluster's semaphores) printed a dozen tracebacks. Started later by whatever needs it first, it also
+    unblocks signals in that thread."""
+    import threading
+    from multiprocessing import resource_tracker
+
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGHUP"):
+        return
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.signal(signal.SIGHUP, previous)
 
 
 def set_parent_death_signal() -> None:

@@ -412,7 +412,7 @@ def build_manifest(
         logger.warning("%d pair(s) have no ground truth in %s: %s", len(missing_gt), gt_dir, _listing(missing_gt))
     if gt_dir is not None:
         paired = set(common)
-        unused = sorted(path.name for stem, path in gts.items() if stem not in paired)
+        unused = sorted(shown_name(path.name) for stem, path in gts.items() if stem not in paired)
         if unused:
             logger.warning("%d ground-truth file(s) in %s match no pair: %s", len(unused), gt_dir, _listing(unused))
     return pairs

@@ -26,7 +26,13 @@ from typing import Any
 
 from gctr_cli.allocator import keep_freed_memory
 from gctr_cli.config import Config
-from gctr_cli.fsutil import THREAD_ENV_VARS, processes_ignore_ctrl_c, set_parent_death_signal, single_thread_env
+from gctr_cli.fsutil import (
+    THREAD_ENV_VARS,
+    processes_ignore_ctrl_c,
+    set_parent_death_signal,
+    single_thread_env,
+    start_resource_tracker,
+)
 from gctr_cli.outcome import PairOutcome, exc_message, failed_outcome, with_warnings
 from gctr_cli.pair import limit_native_threads, resolve_register_fn, run_pair
 
@@ -135,6 +141,32 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     conn.close()
 
 
+#: the start of a worker's temporary folder's name, followed by the batch's pid
+TMP_PREFIX = "gctr-worker-"
+
+
+def _sweep_orphan_tmp() -> None:
+    """Remove the workers' temporary folders of batches that no longer run (a SIGKILLed batch cannot
+    remove them; a LAZ read may have left an 86 MB copy in one)."""
+    base = tempfile.gettempdir()
+    try:
+        names = [n for n in os.listdir(base) if n.startswith(TMP_PREFIX)]
+    except OSError:
+        return
+    for name in names:
+        pid = name[len(TMP_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # that batch still runs (or the pid is another user's process: leave it)
+        except ProcessLookupError:
+            pass
+        except OSError:
+            continue
+        shutil.rmtree(os.path.join(base, name), ignore_errors=True)
+
+
 @contextmanager
 def _tmpdir(path: str | None) -> Iterator[None]:
     """``TMPDIR`` set to ``path`` (when given) for the ``with`` block: a process started inside keeps it."""
@@ -159,8 +191,9 @@ class _Worker:
         # the worker's own temporary folder (its TMPDIR): a worker killed at the time limit or by the
         # kernel cannot remove what it made (a LAZ file's decompressed copy, 86 MB per 3 million
         # points, night after night); the batch removes the folder with the worker
+        # (named by the batch's pid: one left by a batch that was SIGKILLed is removed by the next)
         try:
-            self.tmp: str | None = tempfile.mkdtemp(prefix="gctr-worker-")
+            self.tmp: str | None = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{os.getpid()}-")
         except OSError:
             self.tmp = None  # the worker uses the system's; a full TMPDIR is reported when a pair needs it
         self.conn, child_conn = ctx.Pipe(duplex=True)
@@ -171,9 +204,13 @@ class _Worker:
             name="gctr-worker",
             daemon=True,
         )
-        # SIGINT blocked: no KeyboardInterrupt traceback while it imports
-        with single_thread_env(), processes_ignore_ctrl_c(), _tmpdir(self.tmp):
-            self.process.start()
+        try:
+            # SIGINT ignored from its start: no KeyboardInterrupt traceback while it imports
+            with single_thread_env(), processes_ignore_ctrl_c(), _tmpdir(self.tmp):
+                self.process.start()
+        except BaseException:
+            self.kill()  # not started, or not tracked yet: its folder goes now
+            raise
         child_conn.close()
         self.spec: Any = None
         self.seed = 0
@@ -208,15 +245,16 @@ class _Worker:
         return f"worker died (exit code {code})"
 
     def kill(self) -> None:
-        if self.process.is_alive():
-            self.process.kill()
-        self.process.join(timeout=5)
+        if self.process.pid is not None:
+            if self.process.is_alive():
+                self.process.kill()
+            self.process.join(timeout=5)
         self.conn.close()
         self.remove_tmp()
 
     def remove_tmp(self) -> None:
         """Remove the worker's temporary folder (once it has exited)."""
-        if self.tmp is not None and not self.process.is_alive():
+        if self.tmp is not None and (self.process.pid is None or not self.process.is_alive()):
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.tmp = None
 
@@ -242,6 +280,8 @@ def pool_outcomes(
     pair and is replaced; a pair over the time limit has its worker killed and replaced.
     """
     ctx = multiprocessing.get_context("spawn")
+    start_resource_tracker()  # with SIGHUP ignored, before any worker
+    _sweep_orphan_tmp()
     pending: deque[tuple[Any, int]] = deque(tasks)
     workers: list[_Worker] = []
     send_retries: dict[str, int] = {}

@@ -573,6 +573,6 @@ def write_report(outdir: str | Path, *, summary: Any = None, config: Any = None)
     outdir = Path(outdir)
     text = render_report(outdir, summary=summary, config=config)
     path = outdir / "report.html"
-    # a folder name that is not UTF-8 (a Latin-1 share) is shown as \xe9 rather than failing the report
-    atomic_write(path, text.encode("utf-8", "backslashreplace"))
+    # a folder name that is not UTF-8 (a Latin-1 share, decoded with surrogates) shown as \xe9, not failing
+    atomic_write(path, text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace").encode("utf-8"))
     return path

@@ -527,8 +527,14 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc and SIGKILL")
-def test_sigkill_mid_run_then_resume_gives_every_pair_once(dataset, tmp_path, subprocess_env):
+def test_sigkill_mid_run_then_resume_gives_every_pair_once(dataset, tmp_path, subprocess_env, monkeypatch):
     exts = [(".ply", ".pcd"), (".pcd", ".xyz"), (".xyz", ".ply"), (".ply", ".ply")]
+    # the killed batch's workers' temporary folders: left (it cannot remove them), swept by the next batch
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    subprocess_env = {**subprocess_env, "TMPDIR": str(tmp)}
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    monkeypatch.setattr(tempfile, "tempdir", None)
     for i in range(8):
         dataset.add_pair(f"pair_{i}", exts=exts[i % 4], with_gt=i % 3 != 2)
     manifest = dataset.manifest()
@@ -569,6 +575,7 @@ def test_sigkill_mid_run_then_resume_gives_every_pair_once(dataset, tmp_path, su
 
     rows_before = read_csv(out / "transforms.csv")[1]
     assert 2 <= len(rows_before) < 8, "the kill must happen mid-run"
+    assert [p.name.startswith(f"gctr-worker-{proc.pid}-") for p in tmp.iterdir()] == [True, True]
     assert (out / LOCK_NAME).exists()  # stale: its process is gone
     with open(out / "transforms.csv", "ab") as fh:  # and the worst case of a torn write
         fh.write(b"pair_9,/a.ply,/b.ply,ok,,1.0")
@@ -576,6 +583,7 @@ def test_sigkill_mid_run_then_resume_gives_every_pair_once(dataset, tmp_path, su
     config = load_config(out / "config.yaml")  # what the killed run used (same as `-c OUTDIR/config.yaml`)
     summary = run_batch(dataset.specs(), config, out, workers=2, resume=True, register_fn=fake_engine.register)
     assert summary.n_resumed == len(rows_before) and summary.n_ok == 8
+    assert list(tmp.iterdir()) == []
     raw = (out / "transforms.csv").read_bytes()
     assert raw.endswith(b"\n") and b"pair_9" not in raw
     rows = read_csv(out / "transforms.csv")[1]
@@ -631,6 +639,25 @@ def test_lock_is_exclusive_and_released():
                 batch.OutdirLock(Path(d)).acquire()
             assert lock.held
         assert not (Path(d) / LOCK_NAME).exists()
+
+
+def test_a_pool_worker_starts_with_ctrl_c_ignored_and_a_temporary_folder_of_its_own(fast_config):
+    """A Ctrl-C about a second after the start printed a worker's import traceback: the worker set SIGINT
+    to ignored only once its imports were done. It now starts with it ignored (inherited)."""
+    import multiprocessing
+
+    from gctr_cli import pool
+
+    w = pool._Worker(multiprocessing.get_context("spawn"), fast_config, None)
+    try:
+        status = Path(f"/proc/{w.process.pid}/status").read_text()
+        ignored = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigIgn")), 16)
+        assert ignored & (1 << (signal.SIGINT - 1))
+        assert w.tmp is not None and Path(w.tmp).name.startswith(f"gctr-worker-{os.getpid()}-")
+        assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # the batch itself still hears Ctrl-C
+    finally:
+        w.kill()
+    assert w.tmp is None
 
 
 def test_a_lock_of_another_host_is_stale_once_its_holder_stops_touching_it(tmp_path, monkeypatch, caplog):

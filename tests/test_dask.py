@@ -355,3 +355,26 @@ def test_a_scheduler_without_workers_is_said_then_the_batch_runs_once_one_joins(
     warned = [r.getMessage() for r in caplog.records if "no dask worker" in r.getMessage()]
     assert warned == [f"no dask worker has joined {cluster.scheduler_address} yet: the batch waits for one (start "
                       "workers, or stop it with Ctrl-C: finished pairs are kept, --resume goes on)"]
+
+
+def test_a_stop_signal_while_the_local_cluster_starts_is_acted_on_once_it_is_up(monkeypatch):
+    """A SIGTERM while gctr's LocalCluster started was raised inside it: the half-started cluster printed
+    tracebacks from its exit handlers (and a Ctrl-C there was lost, the batch running to its end). The
+    signal now waits for the start to end; the cluster is closed, then the signal acts (exit 143)."""
+    import os
+    import signal
+
+    class FakeCluster:
+        closed = False
+
+        def close(self):
+            FakeCluster.closed = True
+
+    def start(n_workers):
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives while the cluster starts
+        return FakeCluster()
+
+    monkeypatch.setattr(dask_cluster, "_start_local_cluster", start)
+    with cli._sigterm_as_interrupt(), pytest.raises(cli._Terminated):
+        dask_cluster.connect(None, 1)
+    assert FakeCluster.closed

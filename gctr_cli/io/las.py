@@ -271,7 +271,8 @@ def _decompress_isolated(path: Path, tmp: Path, raw_bytes: int) -> Path:
             raise PointCloudError(f"{path}: corrupt LAZ file: decompressing the point data did not finish")
         time.sleep(0.005)
     exit_code = os.WEXITSTATUS(status) if os.WIFEXITED(status) else None
-    where = clean(tmp.parent)
+    # a batch worker's own folder (gctr-worker-*, removed with it) lies in the TMPDIR the user set: name that
+    where = clean(tmp.parent.parent if tmp.parent.name.startswith("gctr-worker-") else tmp.parent)
     if exit_code == _CHILD_NO_SPACE:
         need = max(1, math.ceil((raw_bytes + 65536) / 1e6))
         raise PointCloudError(f"{path}: cannot decompress the LAZ file: no space for its temporary copy in {where} "
