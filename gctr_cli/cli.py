@@ -705,7 +705,8 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         if bar is not None:
             bar.close()
         if _has_rows(outdir / batch_mod.TRANSFORMS_FILE):
-            _say_stopped(f"gctr: interrupted; finished pairs are saved in {outdir}; rerun with --resume to finish")
+            shown = os.fsencode(str(outdir)).decode("utf-8", "backslashreplace")
+            _say_stopped(f"gctr: interrupted; finished pairs are saved in {shown}; rerun with --resume to finish")
         else:  # stopped before the first pair was recorded: the run removed what it had created
             _say_stopped("gctr: interrupted before the first pair finished; nothing was written")
         sys.exit(128 + _stop_signal(exc))

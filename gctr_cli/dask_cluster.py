@@ -88,10 +88,10 @@ def connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
         with stop_signals_deferred() as caught:
             try:
                 cluster = _start_local_cluster(n_workers)
+                if not caught:
+                    local_client = Client(cluster, set_as_default=False)
             except Exception as exc:  # noqa: BLE001
                 failure = exc
-            if failure is None and not caught:
-                local_client = Client(cluster, set_as_default=False)
         if caught:  # first: the signal may be what failed the start (it reaches the workers too)
             signal.raise_signal(caught[0])  # the handler of before: KeyboardInterrupt, or gctr's for SIGTERM
         if failure is not None:

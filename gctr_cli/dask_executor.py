@@ -138,16 +138,17 @@ class GctrWorkerSetup(_WorkerPluginBase):
     does not count against the first pair's time limit. Problems are left for the task to report.
     """
 
-    def __init__(self, config: Config, register_ref: str | None, snapshots: bool) -> None:
+    def __init__(self, config: Config, register_ref: str | None, snapshots: bool, own_cluster: bool = False) -> None:
         self.config = config
         self.register_ref = register_ref
         self.snapshots = snapshots
+        self.own_cluster = own_cluster  # gctr's LocalCluster: its workers are gctr's alone
 
     def setup(self, worker: Any = None) -> None:
         for var in THREAD_ENV_VARS:
             os.environ[var] = "1"
         local = getattr(worker, "local_directory", None)
-        if local and os.path.isdir(local):
+        if getattr(self, "own_cluster", False) and local and os.path.isdir(local):  # not another cluster's
             # temporary files (a LAZ file's decompressed copy) in the worker's own folder, which dask removes
             # when the worker ends, and purges when a killed worker's replacement starts
             import tempfile
@@ -356,7 +357,8 @@ def dask_outcomes(
             logger.warning("cannot follow task starts (%s): the per-pair time limit is not enforced",
                            exc_message(exc))
         try:
-            client.register_plugin(GctrWorkerSetup(config, register_ref, snapshots), name=PLUGIN_NAME)
+            client.register_plugin(GctrWorkerSetup(config, register_ref, snapshots, cluster is not None),
+                                   name=PLUGIN_NAME)
         except Exception as exc:  # noqa: BLE001 - typically: gctr is not installed on the workers
             raise BatchError(
                 f"the dask workers cannot set up gctr ({exc_message(exc)}); every worker needs the same "

@@ -130,10 +130,11 @@ def stop_signals_deferred() -> Iterator[list[int]]:
         caught.append(signum)
 
     previous = {}
-    for sig in STOP_SIGNALS:
-        if signal.getsignal(sig) is not signal.SIG_IGN:
-            previous[sig] = signal.signal(sig, record)
     try:
+        for sig in STOP_SIGNALS:  # within the try: one that arrives meanwhile finds every handler restored
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                previous[sig] = signal.getsignal(sig)
+                signal.signal(sig, record)
         yield caught
     finally:
         for sig, handler in previous.items():

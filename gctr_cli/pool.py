@@ -15,6 +15,7 @@ import multiprocessing
 import os
 import shutil
 import signal
+import socket
 import sys
 import tempfile
 import time
@@ -141,30 +142,38 @@ def _worker_main(conn: Any, config: Config, register_ref: str | None, parent_pid
     conn.close()
 
 
-#: the start of a worker's temporary folder's name, followed by the batch's pid
+#: the start of a worker's temporary folder's name: ``gctr-worker-<batch pid>@<host>-<random>``
 TMP_PREFIX = "gctr-worker-"
 
 
+def _tmp_prefix() -> str:
+    return f"{TMP_PREFIX}{os.getpid()}@{socket.gethostname()}-"
+
+
 def _sweep_orphan_tmp() -> None:
-    """Remove the workers' temporary folders of batches that no longer run (a SIGKILLed batch cannot
-    remove them; a LAZ read may have left an 86 MB copy in one)."""
-    base = tempfile.gettempdir()
+    """Remove the workers' temporary folders of batches of this host that no longer run (a SIGKILLed
+    batch cannot remove them; a LAZ read may have left an 86 MB copy in one). Best effort: a folder whose
+    name does not parse, or of another host (a TMPDIR shared between machines), is left alone."""
     try:
+        base = tempfile.gettempdir()
+        host = socket.gethostname()
         names = [n for n in os.listdir(base) if n.startswith(TMP_PREFIX)]
-    except OSError:
-        return
-    for name in names:
-        pid = name[len(TMP_PREFIX):].split("-", 1)[0]
-        if not pid.isdigit() or int(pid) == os.getpid():
-            continue
-        try:
-            os.kill(int(pid), 0)
-            continue  # that batch still runs (or the pid is another user's process: leave it)
-        except ProcessLookupError:
-            pass
-        except OSError:
-            continue
-        shutil.rmtree(os.path.join(base, name), ignore_errors=True)
+        for name in names:
+            pid, at, rest = name[len(TMP_PREFIX):].partition("@")
+            if not (at and pid.isascii() and pid.isdigit() and len(pid) <= 9) or rest.rpartition("-")[0] != host:
+                continue
+            if int(pid) == os.getpid():
+                continue
+            try:
+                os.kill(int(pid), 0)
+                continue  # that batch still runs (or the pid is another user's process: leave it)
+            except ProcessLookupError:
+                pass
+            path = os.path.join(base, name)
+            if os.path.isdir(path) and not os.path.islink(path):
+                shutil.rmtree(path, ignore_errors=True)
+    except Exception:  # a sweep must never stop a batch
+        logger.debug("sweeping orphan worker folders failed", exc_info=True)
 
 
 @contextmanager
@@ -192,11 +201,11 @@ class _Worker:
         # kernel cannot remove what it made (a LAZ file's decompressed copy, 86 MB per 3 million
         # points, night after night); the batch removes the folder with the worker
         # (named by the batch's pid: one left by a batch that was SIGKILLed is removed by the next)
+        self.conn, child_conn = ctx.Pipe(duplex=True)
         try:
-            self.tmp: str | None = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{os.getpid()}-")
+            self.tmp: str | None = tempfile.mkdtemp(prefix=_tmp_prefix())
         except OSError:
             self.tmp = None  # the worker uses the system's; a full TMPDIR is reported when a pair needs it
-        self.conn, child_conn = ctx.Pipe(duplex=True)
         self.process = ctx.Process(
             target=_worker_main,
             args=(child_conn, config, register_ref, os.getpid(), snapshots,
@@ -209,6 +218,7 @@ class _Worker:
             with single_thread_env(), processes_ignore_ctrl_c(), _tmpdir(self.tmp):
                 self.process.start()
         except BaseException:
+            child_conn.close()
             self.kill()  # not started, or not tracked yet: its folder goes now
             raise
         child_conn.close()

@@ -10,6 +10,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -575,7 +576,7 @@ def test_sigkill_mid_run_then_resume_gives_every_pair_once(dataset, tmp_path, su
 
     rows_before = read_csv(out / "transforms.csv")[1]
     assert 2 <= len(rows_before) < 8, "the kill must happen mid-run"
-    assert [p.name.startswith(f"gctr-worker-{proc.pid}-") for p in tmp.iterdir()] == [True, True]
+    assert [p.name.startswith(f"gctr-worker-{proc.pid}@{socket.gethostname()}-") for p in tmp.iterdir()] == [True] * 2
     assert (out / LOCK_NAME).exists()  # stale: its process is gone
     with open(out / "transforms.csv", "ab") as fh:  # and the worst case of a torn write
         fh.write(b"pair_9,/a.ply,/b.ply,ok,,1.0")
@@ -641,6 +642,26 @@ def test_lock_is_exclusive_and_released():
         assert not (Path(d) / LOCK_NAME).exists()
 
 
+def test_the_sweep_of_orphan_worker_folders_removes_only_those_of_dead_batches_of_this_host(tmp_path, monkeypatch):
+    """A SIGKILLed batch's worker folders are removed by the next batch; a folder whose name does not
+    parse (any user can make one in /tmp) must not stop a batch, nor may another host's (a shared TMPDIR) or a
+    live batch's be touched."""
+    from gctr_cli import pool
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead = subprocess.Popen([PYTHON, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname()
+    names = {"dead": f"gctr-worker-{dead.pid}@{host}-abc", "live": f"gctr-worker-{os.getppid()}@{host}-abc",
+             "other_host": f"gctr-worker-{dead.pid}@elsewhere-7f9c-abc", "odd": "gctr-worker-²-x",
+             "huge": f"gctr-worker-{10**30}@{host}-abc", "no_host": f"gctr-worker-{dead.pid}-abc"}
+    for name in names.values():
+        (tmp_path / name).mkdir()
+    pool._sweep_orphan_tmp()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(v for k, v in names.items() if k != "dead")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_a_pool_worker_starts_with_ctrl_c_ignored_and_a_temporary_folder_of_its_own(fast_config):
     """A Ctrl-C about a second after the start printed a worker's import traceback: the worker set SIGINT
     to ignored only once its imports were done. It now starts with it ignored (inherited)."""
@@ -653,7 +674,7 @@ def test_a_pool_worker_starts_with_ctrl_c_ignored_and_a_temporary_folder_of_its_
         status = Path(f"/proc/{w.process.pid}/status").read_text()
         ignored = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigIgn")), 16)
         assert ignored & (1 << (signal.SIGINT - 1))
-        assert w.tmp is not None and Path(w.tmp).name.startswith(f"gctr-worker-{os.getpid()}-")
+        assert w.tmp is not None and Path(w.tmp).name.startswith(f"gctr-worker-{os.getpid()}@{socket.gethostname()}-")
         assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # the batch itself still hears Ctrl-C
     finally:
         w.kill()
