@@ -21,15 +21,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, element_columns, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.lines import (
-    LineReader,
-    as_declared,
-    binary_data,
-    header_line,
-    numeric_text,
-    parse_float,
-    read_rows,
-)
+from gctr_cli.io.lines import LineReader, as_declared, binary_data, header_line, numeric_text, parse_float, read_rows
 from gctr_cli.io.ply import format_columns, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]

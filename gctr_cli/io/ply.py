@@ -21,15 +21,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, named_normals
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.lines import (
-    LineReader,
-    as_declared,
-    binary_data,
-    header_line,
-    numeric_text,
-    parse_float,
-    read_rows,
-)
+from gctr_cli.io.lines import LineReader, as_declared, binary_data, header_line, numeric_text, parse_float, read_rows
 
 __all__ = ["ply_bytes", "read_ply"]
 
