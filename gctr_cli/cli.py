@@ -581,7 +581,9 @@ def _print_summary(summary: Any, config: Any) -> None:
         if len(s.misses) > 50:
             echo(f"  ... and {len(s.misses) - 50} more (see tm_errors.csv)")
     extras = "".join(f", {name}/" for name in ("snapshots", "aligned") if (Path(s.outdir) / name).is_dir())
-    shown = os.fsencode(str(s.outdir)).decode("utf-8", "backslashreplace")  # a Latin-1 name: \xe9, no crash
+    from gctr_cli.io.errors import escaped
+
+    shown = escaped(s.outdir)  # a Latin-1 name as \xe9: no crash under a strict UTF-8 stdout
     echo(f"outputs: {shown}/transforms.csv, tm_errors.csv, matrices/, config.yaml{extras}")
     if s.report_written:
         echo(f"report: {shown}/report.html")
@@ -705,7 +707,9 @@ def batch(manifest: Path, config_path: str | None, outdir: Path, workers: int | 
         if bar is not None:
             bar.close()
         if _has_rows(outdir / batch_mod.TRANSFORMS_FILE):
-            shown = os.fsencode(str(outdir)).decode("utf-8", "backslashreplace")
+            from gctr_cli.io.errors import escaped
+
+            shown = escaped(outdir)
             _say_stopped(f"gctr: interrupted; finished pairs are saved in {shown}; rerun with --resume to finish")
         else:  # stopped before the first pair was recorded: the run removed what it had created
             _say_stopped("gctr: interrupted before the first pair finished; nothing was written")

@@ -9,7 +9,7 @@ import stat
 import sys
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
 #: environment variables that cap native thread pools; set to 1 in every worker before numpy loads
@@ -74,13 +74,12 @@ def write_error(path: str | Path, exc: OSError) -> str:
 
 
 @contextmanager
-def single_thread_env() -> Iterator[None]:
-    """Set every :data:`THREAD_ENV_VARS` to 1 for the ``with`` block, then restore them: a process spawned
-    inside sees them at exec, before it imports numpy."""
-    saved = {var: os.environ.get(var) for var in THREAD_ENV_VARS}
+def environment(values: dict[str, str]) -> Iterator[None]:
+    """Set the environment variables ``values`` for the ``with`` block, then restore them: a process
+    spawned inside sees them at exec."""
+    saved = {var: os.environ.get(var) for var in values}
     try:
-        for var in THREAD_ENV_VARS:
-            os.environ[var] = "1"
+        os.environ.update(values)
         yield
     finally:
         for var, value in saved.items():
@@ -88,6 +87,12 @@ def single_thread_env() -> Iterator[None]:
                 os.environ.pop(var, None)
             else:
                 os.environ[var] = value
+
+
+def single_thread_env() -> AbstractContextManager[None]:
+    """Every :data:`THREAD_ENV_VARS` set to 1 for the ``with`` block (:func:`environment`): a process
+    spawned inside sees them at exec, before it imports numpy."""
+    return environment({var: "1" for var in THREAD_ENV_VARS})
 
 
 @contextmanager

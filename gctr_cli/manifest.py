@@ -88,8 +88,10 @@ def _utf8(text: str) -> bool:
 
 
 def shown_name(text: str) -> str:
-    """``text`` for a message, its undecodable bytes as ``\\xe9``."""
-    return os.fsencode(text).decode("utf-8", "backslashreplace") if not _utf8(text) else text
+    """``text`` for a message, its undecodable bytes as ``\\xe9`` (:func:`~gctr_cli.io.errors.escaped`)."""
+    from gctr_cli.io.errors import escaped
+
+    return escaped(text)
 
 
 def _listing(items: Sequence[str]) -> str:

@@ -223,9 +223,10 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
         runtime = float(getattr(result, "runtime_s", float("nan")))
         if not math.isfinite(runtime):
             runtime = elapsed()
-        stages = ", ".join(f"{k} {v:.2f} s" for k, v in (getattr(result, "timings", None) or {}).items())
-        logger.info("pair %s: %s in %.2f s, confidence %.2f%s", spec.pair_id, result.status, runtime,
-                    _confidence(result), f"; stages: {stages}" if stages else "")
+        if logger.isEnabledFor(logging.INFO):  # -v
+            stages = ", ".join(f"{k} {v:.2f} s" for k, v in (getattr(result, "timings", None) or {}).items())
+            logger.info("pair %s: %s in %.2f s, confidence %.2f%s", spec.pair_id, result.status, runtime,
+                        _confidence(result), f"; stages: {stages}" if stages else "")
         fitness = float(result.fitness)
         rmse = float(result.inlier_rmse)
         confidence = _confidence(result)

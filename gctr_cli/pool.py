@@ -21,7 +21,6 @@ import tempfile
 import time
 from collections import deque
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from multiprocessing.connection import wait as _mp_wait
 from typing import Any
 
@@ -29,6 +28,7 @@ from gctr_cli.allocator import keep_freed_memory
 from gctr_cli.config import Config
 from gctr_cli.fsutil import (
     THREAD_ENV_VARS,
+    environment,
     processes_ignore_ctrl_c,
     set_parent_death_signal,
     single_thread_env,
@@ -176,23 +176,6 @@ def _sweep_orphan_tmp() -> None:
         logger.debug("sweeping orphan worker folders failed", exc_info=True)
 
 
-@contextmanager
-def _tmpdir(path: str | None) -> Iterator[None]:
-    """``TMPDIR`` set to ``path`` (when given) for the ``with`` block: a process started inside keeps it."""
-    if path is None:
-        yield
-        return
-    saved = os.environ.get("TMPDIR")
-    os.environ["TMPDIR"] = path
-    try:
-        yield
-    finally:
-        if saved is None:
-            os.environ.pop("TMPDIR", None)
-        else:
-            os.environ["TMPDIR"] = saved
-
-
 class _Worker:
     """One long-lived worker process, fed one pair at a time through a pipe."""
 
@@ -215,7 +198,7 @@ class _Worker:
         )
         try:
             # SIGINT ignored from its start: no KeyboardInterrupt traceback while it imports
-            with single_thread_env(), processes_ignore_ctrl_c(), _tmpdir(self.tmp):
+            with single_thread_env(), processes_ignore_ctrl_c(), environment({"TMPDIR": self.tmp} if self.tmp else {}):
                 self.process.start()
         except BaseException:
             child_conn.close()

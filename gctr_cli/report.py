@@ -25,6 +25,7 @@ from typing import Any
 from urllib.parse import quote
 
 from gctr_cli.fsutil import atomic_write
+from gctr_cli.io.errors import escaped
 
 __all__ = ["COLUMNS", "render_report", "write_report"]
 
@@ -573,6 +574,5 @@ def write_report(outdir: str | Path, *, summary: Any = None, config: Any = None)
     outdir = Path(outdir)
     text = render_report(outdir, summary=summary, config=config)
     path = outdir / "report.html"
-    # a folder name that is not UTF-8 (a Latin-1 share, decoded with surrogates) shown as \xe9, not failing
-    atomic_write(path, text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace").encode("utf-8"))
+    atomic_write(path, escaped(text))  # a folder name that is not UTF-8 (a Latin-1 share) as \xe9, not failing
     return path

@@ -13,7 +13,7 @@ from gctr_cli.geometry import coordinate_range_problem, robust_core
 from gctr_cli.io.errors import PointCloudError, clean
 
 __all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "ascii_attribute_names", "ascii_name", "eight_bit_colours",
-           "element_columns", "named_normals", "transform_cloud", "validate_cloud"]
+           "element_columns", "named_normals", "transform_cloud", "unique_name", "validate_cloud"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -259,12 +259,27 @@ def eight_bit_colours(attributes: dict[str, np.ndarray]) -> dict[str, np.ndarray
     return out
 
 
+def _plain(name: str) -> bool:
+    """Whether ``name`` is printable ASCII without blanks, as every format's header holds it."""
+    return name.isascii() and name.isprintable() and not any(c.isspace() for c in name)
+
+
 def ascii_name(name: str) -> str:
     """``name`` in printable ASCII without blanks: accents dropped (``intensité`` -> ``intensite``), any
     other character as ``_``."""
     plain = unicodedata.normalize("NFKD", name).encode("ascii", "ignore").decode("ascii")
-    plain = "".join(c if c.isascii() and c.isprintable() and not c.isspace() else "_" for c in plain)
+    plain = "".join(c if _plain(c) else "_" for c in plain)
     return plain.strip("_") or "attribute"
+
+
+def unique_name(base: str, taken: set[str], limit: int | None = None) -> str:
+    """``base``, or the first of ``base_2``, ``base_3`` ... not in ``taken`` (cut to ``limit`` characters)."""
+    new, j = base, 1
+    while new in taken:
+        j += 1
+        tail = f"_{j}"
+        new = (base[: limit - len(tail)].rstrip("_") if limit else base) + tail
+    return new
 
 
 def ascii_attribute_names(attributes: dict[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
@@ -272,18 +287,15 @@ def ascii_attribute_names(attributes: dict[str, np.ndarray], where: str) -> dict
     need (their headers are ASCII; a name with a blank would split into two). A renamed attribute is
     named in one warning; a new name that is taken gets ``_2``, ``_3`` ... Names that are fine, and the
     order, are unchanged."""
-    if all(str(k).isascii() and str(k).isprintable() and not any(c.isspace() for c in str(k)) for k in attributes):
+    if all(_plain(str(k)) for k in attributes):
         return attributes
     out: dict[str, np.ndarray] = {}
     renamed = []
     taken = {str(k) for k in attributes} | {"x", "y", "z", "X", "Y", "Z"}  # ``ẑ`` must not become ``z``
     for k, v in attributes.items():
         name = str(k)
-        if not (name.isascii() and name.isprintable() and not any(c.isspace() for c in name)):
-            base = new = ascii_name(name)
-            j = 2
-            while new in taken:
-                new, j = f"{base}_{j}", j + 1
+        if not _plain(name):
+            new = unique_name(ascii_name(name), taken)
             taken.add(new)
             renamed.append(f"{name!r} as {new!r}")
             name = new

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["MAX_MESSAGE", "MatrixError", "PointCloudError", "clean", "quote"]
+__all__ = ["MAX_MESSAGE", "MatrixError", "PointCloudError", "clean", "escaped", "quote"]
 
 #: longest message an error carries (characters); the rest is replaced by "..."
 MAX_MESSAGE = 600
@@ -27,6 +27,13 @@ def clean(text: object, limit: int = MAX_MESSAGE) -> str:
     (a lone surrogate) by U+FFFD, and cut to ``limit`` characters."""
     s = _CONTROL.sub("?", _SURROGATE.sub("\ufffd", str(text)))
     return s if len(s) <= limit else s[: max(limit - 3, 0)] + "..."
+
+
+def escaped(text: object) -> str:
+    """``text`` with every undecodable byte of a file name (a lone surrogate) as ``\\xe9``, the byte it
+    stands for: the whole text stays writable as UTF-8 (a report, a summary under a strict locale)."""
+    s = str(text)
+    return s.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace") if _SURROGATE.search(s) else s
 
 
 def quote(token: object, limit: int = MAX_TOKEN) -> str:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from gctr_cli.io.cloud import PointCloud, ascii_name, element_columns, integer_misfit
+from gctr_cli.io.cloud import PointCloud, ascii_name, element_columns, integer_misfit, unique_name
 from gctr_cli.io.errors import PointCloudError, clean, quote
 
 __all__ = ["crs_description", "las_bytes", "read_las"]
@@ -419,6 +419,12 @@ def _source_scales_offsets(pts: np.ndarray, source: Any, transform: np.ndarray) 
 PTS_INTENSITY = (-2048, 2047)
 
 
+def _unit_intensity(name: str, values: np.ndarray) -> bool:
+    """Whether ``values`` are an intensity in [0, 1] (E57's and Open3D's convention), which LAS stretches."""
+    return bool(name == "intensity" and values.dtype.kind == "f" and len(values) and np.isfinite(values).all()
+                and values.min() >= 0.0 and values.max() <= 1.0)
+
+
 def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str, pts: bool = False) -> np.ndarray | None:
     """``values`` as LAS dimension ``dim`` holds them, or None (with a warning naming the file
     ``where`` and the attribute) when they do not fit: laspy would wrap 70000 to 4464 and truncate
@@ -431,8 +437,7 @@ def _fit_dimension(name: str, values: np.ndarray, dim: Any, where: str, pts: boo
         return None
     if dim.kind.name == "FloatingPoint":
         return values
-    if (name == "intensity" and values.dtype.kind == "f" and len(values) and np.isfinite(values).all()
-            and values.min() >= 0.0 and values.max() <= 1.0):
+    if _unit_intensity(name, values):
         return np.round(values.astype(np.float64) * dim.max).astype(np.uint16)
     if pts and name == "intensity" and len(values) and integer_misfit(values, *PTS_INTENSITY) is None:
         logger.warning("%s: intensity -2048..2047 (the PTS convention) written as (value + 2048) x 16, "
@@ -585,8 +590,7 @@ def _fits(name: str, values: np.ndarray, dim: Any) -> bool:
         return False
     if dim.kind.name == "FloatingPoint":
         return True
-    if (name == "intensity" and values.dtype.kind == "f" and len(values) and np.isfinite(values).all()
-            and values.min() >= 0.0 and values.max() <= 1.0):
+    if _unit_intensity(name, values):
         return True
     return integer_misfit(values, int(dim.min), int(dim.max)) is None
 
@@ -623,11 +627,7 @@ def _extra_names(standard: set[str], attrs: dict[str, np.ndarray],
         new = new[:EXTRA_NAME_BYTES]
         if new == k:
             continue
-        base, j = new, 1
-        while new in taken:
-            j += 1
-            tail = f"_{j}"
-            new = base[:EXTRA_NAME_BYTES - len(tail)].rstrip("_") + tail
+        new = unique_name(new, taken, EXTRA_NAME_BYTES)
         taken.add(new)
         renamed[k] = new
     if renamed:
