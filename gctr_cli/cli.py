@@ -276,7 +276,7 @@ def main(verbose: int) -> None:
          batch had to stop (finished pairs saved: --resume); or register
          without -o could not print its matrix
       3  batch --min-success: success rate below the threshold
-      130/143  stopped by Ctrl-C / SIGTERM
+      130/143  stopped by Ctrl-C / SIGTERM (129: SIGHUP)
 
     \b
     -v / -vv go before or after the command:

@@ -91,6 +91,9 @@ def test_help_is_lazy_and_documents_exit_codes():
     for line in ("0  every pair registered", "1  at least one pair failed", "2  usage, manifest, config",
                  "3  --min-success given"):
         assert line in out.stdout
+    top_help, batch_help = out.stdout.split("Usage: ")[1:3]
+    for text in (top_help, batch_help):  # the signals' codes, SIGHUP's too (as in the README's table)
+        assert "130/143" in text and "129: SIGHUP" in text
 
 
 def test_cli_thread_variables_match_the_batch_workers():
