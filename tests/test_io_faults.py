@@ -17,7 +17,7 @@ from conftest import read_csv, write_manifest_rows
 from data_scripts import fake_engine
 from gctr_cli.config import Config
 from gctr_cli.io import PointCloudError, load_point_cloud, save_point_cloud
-from gctr_cli.io.errors import MAX_MESSAGE
+from gctr_cli.io.errors import MAX_MESSAGE, clean, escaped
 
 RNG = np.random.default_rng(11)
 PTS = RNG.normal(size=(50, 3))
@@ -187,13 +187,19 @@ def test_a_file_name_with_control_characters_is_cleaned_too(tmp_path):
     assert "bad?name?.ply: not a PLY file" in str(ei.value)
 
 
-def test_a_file_name_that_is_not_utf8_is_shown_with_a_replacement_character(tmp_path):
+def test_a_file_name_that_is_not_utf8_is_shown_with_its_byte_escaped(tmp_path):
     path = Path(os.fsdecode(os.fsencode(tmp_path) + b"/bad\xffname.ply"))  # a lone surrogate in the str
     path.write_bytes(b"not a ply")
     with pytest.raises(PointCloudError) as ei:
         load_point_cloud(path)
-    assert "bad\ufffdname.ply: not a PLY file" in str(ei.value)
+    assert "bad\\xffname.ply: not a PLY file" in str(ei.value)  # as the summary, report and manifest show it
     str(ei.value).encode("utf-8")  # printable and writable to a UTF-8 CSV cell
+
+
+def test_messages_and_reports_show_an_undecodable_byte_alike():
+    name = os.fsdecode(b"caf\xe9.ply")
+    assert clean(name) == escaped(name) == "caf\\xe9.ply"
+    assert escaped("a\ud800b") == "a\ufffdb"  # a lone surrogate that stands for no byte
 
 
 # ----------------------------------------------------------------------------------------------------

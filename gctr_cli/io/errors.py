@@ -24,8 +24,8 @@ _CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029\u200e\u200f\u202a-\u202e\
 
 def clean(text: object, limit: int = MAX_MESSAGE) -> str:
     """``text`` with every control character replaced by ``?``, every undecodable byte of a file name
-    (a lone surrogate) by U+FFFD, and cut to ``limit`` characters."""
-    s = _CONTROL.sub("?", _SURROGATE.sub("\ufffd", str(text)))
+    shown as ``\\xe9`` (as :func:`escaped` does), and cut to ``limit`` characters."""
+    s = _CONTROL.sub("?", _SURROGATE.sub(_byte, str(text)))
     return s if len(s) <= limit else s[: max(limit - 3, 0)] + "..."
 
 
@@ -33,7 +33,13 @@ def escaped(text: object) -> str:
     """``text`` with every undecodable byte of a file name (a lone surrogate) as ``\\xe9``, the byte it
     stands for: the whole text stays writable as UTF-8 (a report, a summary under a strict locale)."""
     s = str(text)
-    return s.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace") if _SURROGATE.search(s) else s
+    return _SURROGATE.sub(_byte, s) if _SURROGATE.search(s) else s
+
+
+def _byte(match: re.Match[str]) -> str:
+    """``\\xe9`` for the surrogate that stands for byte 0xE9 (surrogateescape); U+FFFD for any other."""
+    code = ord(match.group()) - 0xDC00
+    return f"\\x{code:02x}" if 0x80 <= code <= 0xFF else "\ufffd"
 
 
 def quote(token: object, limit: int = MAX_TOKEN) -> str:
