@@ -328,6 +328,7 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
       1  registration failed (the message says why)
       2  usage, config or file error (unreadable cloud, bad ground truth;
          without -o, a stdout that cannot take the matrix)
+      130/143  stopped by Ctrl-C / SIGTERM (129: SIGHUP)
     """
     _mark_one_shot()
     _single_threaded_native_libs()
@@ -384,6 +385,8 @@ def register(source: Path, target: Path, config_path: str | None, output: Path |
         lines += [f"rot_err_deg: {e.rot_err_deg:.6g}", f"trans_err: {e.trans_err:.6g}",
                   f"trans_err_rel: {e.trans_err_rel:.6g}", f"scale_err: {e.scale_err:.6g}",
                   f"tm_err: {e.tm_err:.6g}", f"success: {'true' if outcome.success else 'false'}"]
+    if transform is not None and output is not None:
+        lines.append(f"matrix_file: {output}")
     if transform is not None and aligned is not None:
         lines.append(f"aligned: {aligned}")
     _print_report("\n".join(lines) + "\n", only_copy=transform is not None and output is None)
@@ -608,7 +611,7 @@ def _print_summary(summary: Any, config: Any) -> None:
               help="Exit 3 if the success rate over pairs with ground truth is below RATE (0..1).")
 @click.option("--executor", type=click.Choice(["local", "dask"]), default=None,
               help="Where pairs run: 'local' process pool (default) or a dask.distributed cluster "
-                   "(pip install 'gctr-cli[dask]').")
+                   "(make setup installs it; elsewhere pip install '.[dask]' in gctr's checkout).")
 @click.option("--scheduler", metavar="ADDRESS",
               help="Dask scheduler address, e.g. tcp://HOST:8786 (implies --executor dask). Without it "
                    "--executor dask starts a local cluster of -j worker processes.")

@@ -69,7 +69,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["check_available", "dask_outcomes"]
 
-INSTALL_HINT = "pip install 'gctr-cli[dask]'"
+INSTALL_HINT = "pip install '.[dask]' in gctr's checkout (make setup does)"
 PLUGIN_NAME = "gctr-worker-setup"  #: name of the worker plugin (re-registering replaces it)
 #: a task lost with a worker killed by gctr (time limit) or by another pair is resubmitted at most this often
 MAX_RESUBMITS = 2
@@ -362,7 +362,7 @@ def dask_outcomes(
         except Exception as exc:  # noqa: BLE001 - typically: gctr is not installed on the workers
             raise BatchError(
                 f"the dask workers cannot set up gctr ({exc_message(exc)}); every worker needs the same "
-                f"Python environment as this machine, with gctr-cli installed ({INSTALL_HINT})"
+                f"Python environment as this machine, with gctr installed ({INSTALL_HINT})"
             ) from None
         while pending or inflight:
             _check_connected(client, scheduler, len(inflight))

@@ -92,7 +92,8 @@ def test_help_is_lazy_and_documents_exit_codes():
                  "3  --min-success given"):
         assert line in out.stdout
     top_help, batch_help = out.stdout.split("Usage: ")[1:3]
-    for text in (top_help, batch_help):  # the signals' codes, SIGHUP's too (as in the README's table)
+    register_help = out.stdout.split("Usage: ")[3]
+    for text in (top_help, batch_help, register_help):  # the signals' codes, SIGHUP's too (as in the README)
         assert "130/143" in text and "129: SIGHUP" in text
 
 
@@ -256,12 +257,14 @@ def test_register_command(runner, fake_register, four_pairs, tmp_path):
     assert np.array_equal(printed, read_matrix(out_matrix))  # printed at full precision
     np.testing.assert_allclose(printed, four_pairs.gt["pcd_xyz"], atol=1e-6)
     assert "seed: 11" in lines and "success: true" in lines and "fitness: 0.875" in lines
+    assert lines[-1] == f"matrix_file: {out_matrix}"  # the write is confirmed, as --aligned's is
     for key in ("scale: ", "inlier_rmse: ", "runtime_s: ", "rot_err_deg: ", "trans_err_rel: ", "scale_err: ",
                 "tm_err: "):
         assert any(line.startswith(key) for line in lines), key
     # the seed changes the (fake) result; default seed = config seed
     res2 = invoke(runner, "register", src, tgt)
     assert res2.exit_code == 0 and "seed: 0" in res2.stdout.splitlines()
+    assert "matrix_file" not in res2.stdout
 
 
 @pytest.mark.parametrize("flags", [("-v", "register"), ("register", "-v"), ("-v", "register", "-v"),
@@ -722,7 +725,7 @@ def test_register_and_apply_as_processes_write_everything_before_the_fast_exit(t
     out = gctr("register", src, tgt, "-o", tmp_path / "m.txt", "--gt", tmp_path / "data" / row["gt"],
                env=subprocess_env)
     assert out.returncode == 0, out.stdout + out.stderr
-    assert "status: ok" in out.stdout and out.stdout.rstrip().endswith("success: true")
+    assert "status: ok" in out.stdout and out.stdout.rstrip().endswith(f"success: true\nmatrix_file: {tmp_path / 'm.txt'}")
     T = read_matrix(tmp_path / "m.txt")
     e = transform_errors(T, gts[row["pair_id"]], 1.0, load_point_cloud(src).mean(axis=0))
     assert e.rot_err_deg < 2.0 and e.scale_err < 0.02

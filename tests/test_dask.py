@@ -204,7 +204,7 @@ def test_missing_dask_is_a_clear_error(monkeypatch, four_pairs, tmp_path):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_distributed)
-    with pytest.raises(BatchError, match=r"pip install 'gctr-cli\[dask\]'"):
+    with pytest.raises(BatchError, match=r"pip install '\.\[dask\]' in gctr's checkout"):
         run_batch(four_pairs.specs(), config_from_dict({}), tmp_path / "out", executor="dask")
     assert not (tmp_path / "out").exists()  # checked before anything is created
 
