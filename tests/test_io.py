@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import logging
 import os
 import struct
@@ -340,6 +341,23 @@ def test_ply_random_bytes(tmp_path, rng):
     with pytest.raises(PointCloudError) as ei:
         load_point_cloud(path)
     assert_error(ei, path, "not a PLY file", "missing 'ply' magic")
+
+
+@pytest.mark.parametrize("name, content, hint", [
+    ("scan.ply", gzip.compress(b"ply\nformat ascii 1.0\n"), "gzip-compressed: decompress it first"),
+    ("scan.ply", b"0.1 0.2 0.3\n0.4 0.5 0.6\n", "text columns of numbers: name it .xyz"),
+    ("scan.ply", b"LASF" + bytes(300), "content is LAS or LAZ: name it .las or .laz"),
+    ("scan.pcd", b"ply\nformat ascii 1.0\nelement vertex 1\n", "content is PLY: name it .ply"),
+    ("scan.pcd", b"1.5,2.5,3.5\n", "text columns of numbers"),
+    ("scan.pcd", gzip.compress(b"VERSION 0.7\n"), "gzip-compressed"),
+    ("scan.ply", b"# .PCD v0.7\nVERSION 0.7\n", "content is PCD: name it .pcd"),
+])
+def test_a_file_of_another_kind_under_a_ply_or_pcd_name_is_named_for_what_it_is(tmp_path, name, content, hint):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, f"not a {name[-3:].upper()} file", hint)
 
 
 @pytest.mark.parametrize(
@@ -1079,7 +1097,10 @@ def test_read_matrix_lenient_layout(tmp_path):
     [
         ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", ["expected 4 rows", "found 3"]),
         ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n0 0 0 1\n", ["more than 4 rows", "line 5"]),
-        ("1 0 0 0 9\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "5 values, expected 4 numbers"]),
+        ("1 0 0 0 9\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "5 values, expected 4 numbers", "four lines of four"]),
+        ("1;0;0;0\n0;1;0;0\n0;0;1;0\n0;0;0;1\n", ["line 1", "';' does not separate numbers", "spaces or commas"]),
+        ("[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n", ["16 values", "brackets are not read"]),
+        ("1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n", ["16 values", "four lines of four numbers"]),
         ("1 0 0 0\n0 one 0 0\n0 0 1 0\n0 0 0 1\n", ["line 2", "non-numeric"]),
         ("1_0 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "non-numeric"]),
         ("1 0 0 nan\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["non-finite", "(0,3)"]),

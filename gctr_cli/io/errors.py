@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["MAX_MESSAGE", "MatrixError", "PointCloudError", "clean", "escaped", "quote"]
+__all__ = ["MAX_MESSAGE", "MatrixError", "PointCloudError", "clean", "content_hint", "escaped", "quote"]
 
 #: longest message an error carries (characters); the rest is replaced by "..."
 MAX_MESSAGE = 600
@@ -40,6 +40,38 @@ def _byte(match: re.Match[str]) -> str:
     """``\\xe9`` for the surrogate that stands for byte 0xE9 (surrogateescape); U+FFFD for any other."""
     code = ord(match.group()) - 0xDC00
     return f"\\x{code:02x}" if 0x80 <= code <= 0xFF else "\ufffd"
+
+
+#: file signatures a point-cloud reader may meet under the wrong name: (leading bytes, what to tell the user)
+_SIGNATURES = (
+    (b"\x1f\x8b", "it is gzip-compressed: decompress it first, e.g. with gunzip"),
+    (b"PK\x03\x04", "it is a zip archive: extract it first"),
+    (b"BZh", "it is bzip2-compressed: decompress it first, e.g. with bunzip2"),
+    (b"\xfd7zXZ\x00", "it is xz-compressed: decompress it first, e.g. with unxz"),
+    (b"\x28\xb5\x2f\xfd", "it is zstd-compressed: decompress it first, e.g. with unzstd"),
+    (b"ply\n", "its content is PLY: name it .ply"),
+    (b"ply\r\n", "its content is PLY: name it .ply"),
+    (b"LASF", "its content is LAS or LAZ: name it .las or .laz"),
+    (b"ASTM-E57", "its content is E57: name it .e57"),
+)
+_PCD_START = re.compile(rb"^\s*(#\s*\.PCD|VERSION\s|FIELDS\s)", re.IGNORECASE)
+_NUMBER = rb"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+_NUMBERS_LINE = re.compile(rb"^\s*" + _NUMBER + rb"([\s,;]+" + _NUMBER + rb"){2,}\s*$")  # three or more numbers
+
+
+def content_hint(head: bytes) -> str:
+    """What a file's first bytes (``head``, a few hundred) show it to be, for the message of a reader
+    that did not find its own format there: compressed, another format, or text columns of numbers.
+    Empty when they show nothing known."""
+    for signature, hint in _SIGNATURES:
+        if head.startswith(signature):
+            return hint
+    if _PCD_START.match(head):
+        return "its content is PCD: name it .pcd"
+    first = head.split(b"\n", 1)[0].rstrip(b"\r")
+    if _NUMBERS_LINE.match(first):
+        return "it holds text columns of numbers: name it .xyz, .txt or .csv"
+    return ""
 
 
 def quote(token: object, limit: int = MAX_TOKEN) -> str:

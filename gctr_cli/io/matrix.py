@@ -41,9 +41,8 @@ def read_matrix(path: str | Path) -> np.ndarray:
             continue
         tokens = line.split()
         if len(tokens) != 4:
-            raise MatrixError(
-                f"{path}: line {lineno} has {len(tokens)} values, expected 4 numbers: {quote(raw.strip(), 80)}"
-            )
+            raise MatrixError(f"{path}: line {lineno} has {len(tokens)} values, expected 4 numbers: "
+                              f"{quote(raw.strip(), 80)} ({_layout_hint(line)})")
         if len(rows) == 4:
             raise MatrixError(f"{path}: more than 4 rows of numbers (extra row on line {lineno})")
         try:
@@ -57,6 +56,15 @@ def read_matrix(path: str | Path) -> np.ndarray:
     T = np.array(rows, dtype=np.float64)
     _check_matrix(T, str(path))
     return T
+
+
+def _layout_hint(line: str) -> str:
+    """What to change in a matrix line that does not hold four numbers."""
+    if ";" in line:
+        return "';' does not separate numbers here: use spaces or commas, and '.' for decimals"
+    if any(c in line for c in "[]()"):
+        return "brackets are not read: write the numbers alone, four lines of four"
+    return "a matrix file is four lines of four numbers, separated by spaces or commas"
 
 
 def write_matrix(path: str | Path, T: np.ndarray) -> None:
