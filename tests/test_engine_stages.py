@@ -731,6 +731,9 @@ def test_validate_cloud_errors():
     planar = r"^src: points are planar \(thickness .* of the extent; registration would be ambiguous\)$"
     with pytest.raises(DegenerateCloudError, match=planar):
         validate_cloud(plane, "src")
+    needle = line + rng.normal(scale=1e-5, size=line.shape)  # a line with noise: not planar, nearly collinear
+    with pytest.raises(DegenerateCloudError, match=r"^tgt: points are nearly collinear \(width .* and thickness "):
+        validate_cloud(needle, "tgt")
     with pytest.raises(DegenerateCloudError, match=r"^src: only 5 finite points \(need at least 10\)$"):
         validate_cloud(rng.normal(size=(5, 3)), "src")
     with pytest.raises(DegenerateCloudError, match=r"expected an \(N, 3\) array"):

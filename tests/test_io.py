@@ -990,6 +990,25 @@ def test_collinear_points(tmp_path, rng):
     assert_error(ei, path, "collinear")
 
 
+def test_a_line_stored_as_float32_is_collinear_within_its_rounding(tmp_path, rng):
+    """float32 rounding moves a stored line's points off it by about 1e-7 of the coordinates: still a line
+    (it was found only as "planar" by the engine), while a float64 strip far from the origin is not."""
+    t = rng.uniform(-0.1, 0.1, size=(2000, 1))
+    line = (t * np.array([1.0, 2.0, 3.0])).astype(np.float32)
+    path = tmp_path / "line32.ply"
+    save_point_cloud(path, line)
+    with pytest.raises(PointCloudError) as ei:
+        load_point_cloud(path)
+    assert_error(ei, path, "collinear", "2000 points on one line, within the float32 rounding")
+    strip = np.c_[rng.uniform(0, 100, 500), rng.uniform(0, 0.5, 500), np.zeros(500)] + [5e5, 5e6, 200.0]
+    assert len(load_point_cloud(_saved(tmp_path / "strip.ply", strip))) == 500  # float64: a strip, kept
+
+
+def _saved(path: Path, points: np.ndarray) -> Path:
+    save_point_cloud(path, points)
+    return path
+
+
 def test_planar_points_accepted(tmp_path, rng):
     pts = np.c_[rng.normal(size=(100, 2)), np.zeros(100)]
     path = tmp_path / "plane.ply"

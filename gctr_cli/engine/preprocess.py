@@ -100,6 +100,9 @@ def validate_cloud(points: np.ndarray, name: str, min_points: int = 10) -> np.nd
         raise DegenerateCloudError(f"{name}: {len(core)} of {of} points are identical; {others} far from them")
     if sv[1] < 1e-9 * sv[0]:
         raise DegenerateCloudError(f"{name}: points are collinear")
+    if sv[1] < 1e-3 * sv[0]:  # a needle: both other extents under 0.1%
+        raise DegenerateCloudError(f"{name}: points are nearly collinear (width {sv[1] / sv[0]:.1e} and thickness "
+                                   f"{sv[2] / sv[0]:.1e} of the length; registration would be ambiguous)")
     if sv[2] < 1e-3 * sv[0]:
         # Thinner than 0.1% of its extent: flat up to noise, so the rotation about the normal and
         # the scale are not observable; better a clear failure than a confident wrong matrix.

@@ -193,10 +193,9 @@ def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> np.ndarray:
         others = "the other one lies" if rest == 1 else f"the other {rest} lie"
         raise PointCloudError(f"{path}: degenerate cloud: {len(core)} of its {n} points{dropped} are identical; "
                               f"{others} far from them")
-    elif _collinear(core):
-        raise PointCloudError(
-            f"{path}: degenerate cloud: points are collinear ({len(core)} points{dropped} on one line{outliers})"
-        )
+    elif (line := _collinear(core)) is not None:
+        raise PointCloudError(f"{path}: degenerate cloud: points are collinear ({len(core)} points{dropped} on one "
+                              f"line{outliers}{line})")
     return core
 
 
@@ -305,7 +304,18 @@ def ascii_attribute_names(attributes: dict[str, np.ndarray], where: str) -> dict
     return out
 
 
-def _collinear(pts: np.ndarray) -> bool:
+def _collinear(pts: np.ndarray) -> str | None:
+    """Whether ``pts`` lie on one line: None if not, else "" or the note that the line holds within the
+    float32 rounding of the stored coordinates (a line written as float32 is that far off a straight line:
+    about 1e-7 of the coordinates' size, far more than :data:`COLLINEAR_RTOL` of a short line)."""
     centred = pts - pts.mean(axis=0)
-    sv = np.linalg.svd(centred, compute_uv=False)
-    return bool(sv[1] < COLLINEAR_RTOL * sv[0])
+    spread = np.linalg.svd(centred, compute_uv=False) / np.sqrt(len(pts))  # RMS along each principal direction
+    if spread[1] < COLLINEAR_RTOL * spread[0]:
+        return ""
+    if np.array_equal(pts.astype(np.float32), pts):  # stored as float32 (or as few digits)
+        ulp = float(np.spacing(np.float32(np.abs(pts).max())))
+        # only where float32 keeps the line's length finely (else the coordinates are too coarse to tell a
+        # line from anything else, which the coarse-coordinates note says)
+        if spread[1] <= ulp and spread[0] >= 1000.0 * ulp:
+            return ", within the float32 rounding of its coordinates"
+    return None
