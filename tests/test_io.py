@@ -1228,6 +1228,19 @@ def test_a_coarse_step_is_a_lattice_of_the_core_and_not_a_few_levels_or_a_grid_s
     assert note is not None and note.startswith("coordinates are stored in steps of 0.5 along y, ")
 
 
+def test_float32_coordinates_written_as_text_get_the_float32_note(tmp_path):
+    """float32 values far from the origin printed with 9 digits (``%.9g``) are off float32's lattice by a
+    digit, enough to hide it from the lattice test: they are recognised as float32 values all the same."""
+    bunny = np.asarray(load_point_cloud(Path(__file__).parents[1] / "data" / "models" / "bunny.ply"))
+    far = (bunny + [3e5, 3e5, 200.0]).astype(np.float32)
+    path = tmp_path / "far32.xyz"
+    np.savetxt(path, far, fmt="%.9g")
+    assert not np.all(np.loadtxt(path) == far.astype(np.float64))  # the text is not exactly the float32 values
+    note = coarse_step_note(np.loadtxt(path))
+    assert note is not None and "steps of 0.0312 along x and y" in note and "float32 values as far" in note
+    assert coarse_step_note(bunny + [3e5, 3e5, 200.0]) is None  # the same offset in float64: no note
+
+
 def test_a_float32_axis_collapsed_to_two_levels_is_the_one_named(tmp_path, caplog):
     """The bunny at full size 5.4 million metres from the origin in float32: y holds two values 0.5 apart,
     so the cloud's core is flat along y and the note named x's 0.03 steps instead of y's 0.5, the cause

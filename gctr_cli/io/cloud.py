@@ -40,6 +40,10 @@ COARSE_STEP_SAMPLE = 200_000
 #: float32 storage at its distance from the origin explains the step
 COARSE_STEP_MIN_VALUES = 3
 
+#: text values within this relative distance of float32 values are float32 values written with 9 or more
+#: digits (``%.9g`` is within 5e-9; a float64 value is on average 1.5e-8 from the nearest float32)
+FLOAT32_PRINTED_RTOL = 1e-8
+
 #: ``extra`` of a reader's warning that concerns an attribute (read only with ``attributes=True``)
 ATTRIBUTE_NOTE = {"gctr_attribute_note": True}
 
@@ -151,6 +155,9 @@ def coarse_step_note(points: np.ndarray, core: np.ndarray | None = None) -> str 
             values = np.unique(points[:: max(1, len(points) // COARSE_STEP_SAMPLE), axis])
             if len(values) < 2:
                 continue
+        snapped = values.astype(np.float32).astype(np.float64)
+        if np.all(np.abs(snapped - values) <= FLOAT32_PRINTED_RTOL * np.abs(values)):
+            values = np.unique(snapped)  # float32 values written as text: their steps are float32's
         gaps = np.diff(values)
         step = float(gaps.min())
         if step <= COARSE_STEP_RATIO * diagonal:
