@@ -444,7 +444,8 @@ def test_refusal_message_states_the_share_explained_and_the_lead():
                     agreement=Agreement(score, score), support=1.0)
         return refusal_message(v, cfg)
 
-    assert "explains 13% of the two surfaces and scores only 1 point more than" in message(0.13, 0.12)
+    assert "lays 13% of the two surfaces on each other (at the verdict's tight tolerance, finer than fitness's) " \
+           "and scores only 1 point more than" in message(0.13, 0.12)
     assert "scores only 4 points more than" in message(0.10, 0.06)
     assert message(0.10, 0.11).startswith("low confidence 0.00") and "no more than a distinct" in message(0.10, 0.11)
     # the share explained is the plain agreement; the score also counts the points landing beside
@@ -456,12 +457,20 @@ def test_refusal_message_states_the_share_explained_and_the_lead():
     a = Agreement(0.2, 0.1, 0.8, 0.6, 0.25)  # score 0.15 - 0.175 = -0.025
     v = Verdict(confidence=confidence(a.score, -0.1, 0.25), score=a.score, rival_score=-0.1, support=1.0, agreement=a)
     assert v.confidence == 0.0
-    assert refusal_message(v, cfg).startswith("low confidence 0.00 (threshold 0.15): the best alignment explains 15%")
-    assert "lays as much of them or more beside each other (score -0.02 vs -0.10)" in refusal_message(v, cfg)
+    assert refusal_message(v, cfg).startswith("low confidence 0.00 (threshold 0.15): the best alignment lays 15%")
+    off = "as much of them or more near each other but off the surface (score -0.02 vs -0.10)"
+    assert off in refusal_message(v, cfg)
     # too little explained to call it ambiguous, however close the rival
     a = Agreement(0.1, 0.1)
     v = Verdict(confidence=0.0, score=a.score, rival_score=0.1, support=1.0, agreement=a)
     assert refusal_message(v, cfg).startswith("low confidence")
+    # the relief is named only when it gave the confidence (the larger of the two leads)
+    a = Agreement(0.5, 0.5)
+    from_relief = Verdict(confidence=0.12, score=0.5, rival_score=0.48, support=1.0, agreement=a,
+                          relief_confidence=0.12)
+    plain = Verdict(confidence=0.14, score=0.5, rival_score=0.465, support=1.0, agreement=a, relief_confidence=0.07)
+    assert "; that confidence comes from the relief (the heights above" in refusal_message(from_relief, cfg)
+    assert "relief" not in refusal_message(plain, cfg)
     # the confidence is truncated, never rounded up to the threshold it missed
     a = Agreement(0.5, 0.5)
     v = Verdict(confidence=0.1496, score=0.5, rival_score=0.4626, support=1.0, agreement=a)

@@ -357,8 +357,8 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
     rival scores nearly as much on a well-explained pair (the answer puts at least
     ``AMBIGUITY_MIN_AGREEMENT`` of the two surfaces on each other), else *low confidence* with how much
     of the data the best alignment explains and by how many points of score it leads (or that it lays
-    more of the clouds beside each other than on each other), and what the relief evidence gave, when it
-    gave anything (:func:`relief_confidence`), and that the clouds are sparse when the verdict's samples
+    more of the clouds beside each other than on each other), that the relief gave the confidence, when
+    it did (:func:`relief_confidence`), and that the clouds are sparse when the verdict's samples
     were too small for a full confidence (:func:`gctr_cli.engine.verdict.sample_weight`). The confidence
     is shown truncated to two decimals, so that a refused answer never reads as reaching the threshold.
     A rival that scores more than the answer is named as unrefined (the only kind that can)."""
@@ -368,8 +368,9 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
         # the refined finalists are ranked, so only an unrefined transform of the search's pool outscores
         # the answer: say so, or "the best alignment" reads as scoring below its alternative
         scores += ", the alternative found by the search and not refined"
-    relief = ("" if verdict.relief_confidence <= 0 else
-              f"; the relief over the target's dominant plane backs it to {truncated(verdict.relief_confidence)}")
+    relief = ("" if not 0 < verdict.confidence <= verdict.relief_confidence else
+              "; that confidence comes from the relief (the heights above the target's dominant plane, such as "
+              "a ground or a floor)")
     sparse = ("" if verdict.sample_weight >= 1 else
               f"; the clouds are sparse: the verdict compared only {verdict.sample_points} points a cloud, so its "
               f"confidence counts sqrt({verdict.sample_points}/{cfg.verdict.full_margin_points}) = "
@@ -380,10 +381,11 @@ def refusal_message(verdict: Verdict, cfg: EngineConfig) -> str:
             and explained >= AMBIGUITY_MIN_AGREEMENT):
         return (f"ambiguous: two distinct alignments explain the data almost equally well ({scores}; "
                 f"confidence {shown}, threshold {cfg.min_confidence:.2f}){relief}{sparse}")
-    head = (f"low confidence {shown} (threshold {cfg.min_confidence:.2f}): the best alignment explains "
-            f"{100 * explained:.0f}% of the two surfaces")
+    head = (f"low confidence {shown} (threshold {cfg.min_confidence:.2f}): the best alignment lays "
+            f"{100 * explained:.0f}% of the two surfaces on each other (at the verdict's tight tolerance, finer "
+            "than fitness's)")
     if verdict.score <= 0:
-        return f"{head} and lays as much of them or more beside each other ({scores}){relief}{sparse}"
+        return f"{head} and as much of them or more near each other but off the surface ({scores}){relief}{sparse}"
     points = round(100 * lead)
     margin = ("scores no more than" if points <= 0 else
               f"scores only {points} point{'' if points == 1 else 's'} more than")
