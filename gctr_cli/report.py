@@ -37,11 +37,12 @@ COLUMNS: tuple[tuple[str, str, str, str], ...] = (
     ("rot_err_deg", "rot. err (°)", "num", "rotation error: geodesic angle to the ground truth, degrees"),
     ("trans_err_rel", "trans. err (× diag)", "num", "translation error relative to the target's bounding-box diagonal"),
     ("scale_err", "scale err", "num", "|s_est / s_gt - 1|"),
-    ("tm_err", "TM err", "num", "Frobenius norm of T_est - T_gt"),
+    ("tm_err", "TM err", "num", "Frobenius norm of T_est - T_gt: in the data's units and growing with the "
+     "coordinates' distance from the origin, so compare it only between pairs of the same data"),
     ("success", "success", "text", "all errors below the success thresholds"),
     ("fitness", "fitness", "num", "fraction of source points with a target point within the inlier distance"),
-    ("confidence", "confidence", "num", "how strongly the data single out the transform (0..1); empty when the "
-     "method computes none"),
+    ("confidence", "confidence", "num", "how strongly the data single out the transform (0..1): its lead over "
+     "the best distinct alternative; it says which alignment, not how precise; empty when the method computes none"),
     ("scale", "scale", "num", "estimated scale s"),
     ("runtime_s", "time (s)", "num", "registration time of the pair, seconds"),
 )
@@ -410,7 +411,8 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
         # (earlier runs with another manifest: pairs since removed) are listed apart, not counted
         manifest = set(summary.pair_ids)
         others = [r for r in rows if r.get("pair_id") not in manifest]
-        rows = [r for r in rows if r.get("pair_id") in manifest]
+        order = {pid: i for i, pid in enumerate(summary.pair_ids)}  # the manifest's order, not the finishing one
+        rows = sorted((r for r in rows if r.get("pair_id") in manifest), key=lambda r: order[r["pair_id"]])
     thresholds = getattr(config, "success", None)
 
     s = summary
@@ -423,7 +425,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
     err_rows = [errs[r["pair_id"]] for r in ok_rows if r["pair_id"] in errs]
     plot = _error_plot(err_rows, s.n_gt, thresholds)
     snap_dir = outdir / "snapshots"
-    has_snapshots = snap_dir.is_dir()
+    has_snapshots = snap_dir.is_dir() and any(snap_dir.glob("*.png"))
 
     out: list[str] = []
     w = out.append
@@ -504,7 +506,12 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
       f"<option value=\"failed\">failed ({n_failed_rows})</option></select></label>\n")
     w(f"<span><span id=\"shown\">{len(rows)}</span> of {len(rows)} rows &middot; click a column header "
       "to sort</span>\n</div>\n")
-    w("<div class=\"scroll\">\n<table id=\"pairs\">\n<thead><tr><th class=\"nosort\">snapshot</th>")
+    w("<p class=\"meta\">A <b>failed</b> pair has no matrix: either an input could not be used (the message names "
+      "the file) or the evidence did not single out one alignment (<i>low confidence</i>, <i>ambiguous</i>): gctr "
+      "refuses rather than guess. The <b>confidence</b> of an ok pair is its lead over the best distinct "
+      "alternative: it tells which alignment, not how precise it is (the errors against ground truth do).</p>\n")
+    w("<div class=\"scroll\">\n<table id=\"pairs\">\n<thead><tr>"
+      + ("<th class=\"nosort\">snapshot</th>" if has_snapshots else ""))
     for key, label, typ, tip in COLUMNS:
         w(f"<th data-key=\"{key}\" data-type=\"{typ}\" tabindex=\"0\" scope=\"col\" title=\"{_e(tip)}\">"
           f"{_e(label)}</th>")
@@ -516,7 +523,8 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
         w(f"<p class=\"meta\">{len(others)} {_plural(len(others), 'row')} of earlier runs in this folder whose pairs "
           "this run's manifest does not list (removed since, or another manifest's). They stay in the CSVs (and "
           "the matrices of ok ones in matrices/); the summary above does not count them.</p>\n")
-        w("<div class=\"scroll\">\n<table id=\"other-pairs\">\n<thead><tr><th>snapshot</th>")
+        w("<div class=\"scroll\">\n<table id=\"other-pairs\">\n<thead><tr>"
+          + ("<th>snapshot</th>" if has_snapshots else ""))
         for _key, label, _typ, tip in COLUMNS:
             w(f"<th scope=\"col\" title=\"{_e(tip)}\">{_e(label)}</th>")
         w("</tr></thead>\n<tbody>\n")
@@ -532,7 +540,7 @@ def render_report(outdir: str | Path, *, summary: Any = None, config: Any = None
 def _pair_rows(w: Any, rows: Sequence[dict[str, str]], errs: dict[str, dict[str, str]], gt_ids: set[str],
                snap_dir: Path | None) -> None:
     """The ``<tr>`` of each row of ``transforms.csv`` (``gt_ids``: pairs whose failure counts as no success;
-    ``snap_dir``: the snapshots folder, when the run made one)."""
+    ``snap_dir``: the snapshots folder, when the run made one; without it there is no snapshot column)."""
     for r in rows:
         pid = r.get("pair_id", "")
         status = r.get("status", "")
@@ -544,7 +552,9 @@ def _pair_rows(w: Any, rows: Sequence[dict[str, str]], errs: dict[str, dict[str,
                  **{k: e.get(k, "") for k in ("rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "success")}}
         cls = "ok" if status == "ok" else "failed"
         w(f"<tr class=\"{cls}\" data-status=\"{_e(cls)}\" data-pair=\"{_e(pid)}\">")
-        if snap_dir is not None and (snap_dir / f"{pid}.png").exists():
+        if snap_dir is None:
+            pass
+        elif (snap_dir / f"{pid}.png").exists():
             href = "snapshots/" + quote(f"{pid}.png")
             w(f"<td class=\"thumb\"><a href=\"{_e(href)}\"><img src=\"{_e(href)}\" loading=\"lazy\" width=\"108\" "
               f"height=\"72\" alt=\"snapshot of {_e(pid)}\"></a></td>")

@@ -74,8 +74,8 @@ def parse(text: str) -> _Page:
 
 
 def column(page: _Page, key: str) -> list[str]:
-    i = 1 + [c[0] for c in COLUMNS].index(key)  # +1: the snapshot column
-    return [cells[i] for cells in page.cells]
+    i = [c[0] for c in COLUMNS].index(key)
+    return [cells[i + len(cells) - len(COLUMNS)] for cells in page.cells]  # after the snapshot column, if any
 
 
 def assert_self_contained(text: str, page: _Page) -> None:
@@ -103,6 +103,9 @@ def test_report_has_every_pair_summary_and_plot(failing_set, fast_config, tmp_pa
     page = parse(text)
     ids = [r["pair_id"] for r in read_csv(out / "transforms.csv")[1]]
     assert sorted(r["data-pair"] for r in page.rows) == sorted(ids) and len(page.rows) == 7
+    assert [r["data-pair"] for r in page.rows] == [p.pair_id for p in failing_set.specs()]  # the manifest's order
+    assert "snapshot</th>" not in text and "class=\"thumb" not in text  # no snapshots asked for: no column
+    assert "gctr refuses rather than guess" in text and "not how precise it is" in text
     assert page.headers == [c[0] for c in COLUMNS]
     status = dict(zip(column(page, "pair_id"), column(page, "status")))
     assert status["raises"] == "failed" and status["ply_ply"] == "ok"
