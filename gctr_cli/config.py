@@ -223,6 +223,12 @@ class VerdictConfig(_Strict):
         (0.1, 0.2),
         description="an answer short of confidence 1 is also tried slid both ways by these shares of the smaller "
                     "cloud along the direction its surface contact constrains least, refined; [] = off")
+    turned_finalists: int = Field(
+        2, ge=0, le=6,
+        description="every answer is also turned half a turn about the principal axes of both clouds, and up to "
+                    "this many turns that agree well are refined and judged as finalists: a symmetric shape (a "
+                    "box, a cylinder, a patch that fits turned) has a rival the search may not have proposed; "
+                    "0 = off")
     slide_free_ratio: float = Field(
         0.05, ge=0, lt=1,
         description="... and so is a confident answer whose contact leaves a direction nearly free: the smallest "

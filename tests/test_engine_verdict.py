@@ -418,6 +418,40 @@ def test_a_featureless_cylinder_that_can_slide_along_its_axis_is_ambiguous():
     assert res.confidence < 0.1
 
 
+def _box(n: int, rng: np.random.Generator, size=(0.2, 0.12, 0.08)) -> np.ndarray:
+    """Points on the six faces of a closed box (faces drawn uniformly, not by area)."""
+    half = 0.5 * np.asarray(size)
+    face = rng.integers(0, 6, n)
+    points = rng.uniform(-1.0, 1.0, (n, 3)) * half
+    axis = face // 2
+    points[np.arange(n), axis] = np.where(face % 2 == 0, -1.0, 1.0) * half[axis]
+    return points
+
+
+def _tube(n: int, rng: np.random.Generator) -> np.ndarray:
+    theta = rng.uniform(0.0, 2.0 * np.pi, n)
+    return np.column_stack([0.05 * np.cos(theta), 0.05 * np.sin(theta), rng.uniform(-0.15, 0.15, n)])
+
+
+@pytest.mark.parametrize("shape, seed, turn", [("box", 1, 1.0), ("tube", 2, 1.3)])
+def test_a_symmetric_shape_against_a_turned_copy_is_ambiguous(shape, seed, turn):
+    """A closed box and an open tube, each against a copy sampled apart and moved: a half-turn about an
+    axis of either fits as well as the truth. The search proposed only one of them, which came back ok
+    at confidence 1 (the box 180 degrees off, the tube 104); the answer turned half a turn about each
+    principal axis of both clouds (``verdict.turned_finalists``) is the rival that says so."""
+    rng = np.random.default_rng(seed)
+    make = _box if shape == "box" else _tube
+    src, tgt = make(20000 if shape == "box" else 6000, rng), make(8000 if shape == "box" else 3000, rng)
+    R = turn * (Rotation.from_euler("xyz", (30, -50, 80), degrees=True).as_matrix() if shape == "box"
+                else Rotation.random(random_state=seed).as_matrix())
+    tgt = tgt @ R.T + ([0.4, -1.2, 2.0] if shape == "box" else [0.2, -0.1, 0.3])
+    tgt += rng.normal(scale=0.0005, size=tgt.shape)
+    without = register(src, tgt, EngineConfig(verdict={"turned_finalists": 0}), seed=0)
+    assert without.status == "ok" and without.confidence == 1.0  # what the turns are for
+    res = register(src, tgt, cfg_default(), seed=0)
+    assert res.status == "failed" and res.message.startswith("ambiguous"), (res.confidence, res.message)
+
+
 def test_threshold_is_a_config_key():
     """A pair that passes at the default threshold is refused at a strict one, with the
     low-confidence message naming the threshold; the failed result still carries the best transform.

@@ -149,7 +149,9 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     weighs its score against the best rival's (a rival aligns the data the answer aligns differently:
     :func:`shared_displacement`). An answer short of confidence 1 is also tried slid along the
     direction its surface contact leaves free (:func:`slid_transforms`, ``verdict.slide_steps``): two
-    low-overlap room fragments can slide along a wall, and a wrong slide is found there or refused."""
+    low-overlap room fragments can slide along a wall, and a wrong slide is found there or refused. Every
+    answer is also turned half a turn about the clouds' principal axes (:func:`likely_turns`,
+    ``verdict.turned_finalists``): a symmetric shape's other pose is a rival the search may not propose."""
     v = cfg.verdict
     pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
     pool.sort(key=lambda item: -item[1].score)
@@ -170,6 +172,18 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     height_map = functools.cache(lambda: target_heights(tgt_ref, test, cfg))  # built once, if the relief is asked
     T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test, height_map,
                                         known)
+    if v.turned_finalists:
+        # The answer turned half a turn about a principal axis of either cloud: a symmetric shape fits
+        # as well turned (a box, a tube, a patch of a round surface), and the search need not have
+        # proposed that alignment. Turns that agree well are refined and join the finalists: one that
+        # fits better becomes the answer, one that fits as well makes the answer ambiguous.
+        turned = [(T, a) for T, a in (_refine(T_t, src_ref, tgt_ref, cfg, bounds_n, timer, test, known)
+                                      for T_t in likely_turns(T_answer, src_ref, tgt_ref, cfg, v.turned_finalists))
+                  if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
+        if turned:
+            refined = refined + turned
+            T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test,
+                                                height_map, known)
     free = (contact_freedom(T_answer, src_ref, tgt_ref, test.distance)
             if v.slide_steps and (verdict.confidence < 1.0 or v.slide_free_ratio > 0) else None)
     if free is not None and (verdict.confidence < 1.0 or free[1] < v.slide_free_ratio):
@@ -185,6 +199,31 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
             T_answer, verdict, _ = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test,
                                            height_map, known)
     return T_answer, verdict
+
+
+#: a half-turn start of :func:`likely_turns` is refined only when, unrefined, it agrees with the target at the
+#: inlier distance at least this share of the answer's agreement there
+TURN_START_RATIO = 0.5
+
+
+def likely_turns(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
+                 count: int) -> list[np.ndarray]:
+    """``T`` followed by a half-turn about each principal axis of the moved source and of the target (through
+    its centroid): the ``count`` that agree best with the target at the inlier distance, of those that agree
+    at least :data:`TURN_START_RATIO` as well as ``T`` does (starts for the verdict's refinement)."""
+    def coarse(S: np.ndarray) -> float:
+        return surface_agreement(S, src_ref.surface, tgt_ref.surface, cfg.inlier_distance_ratio,
+                                 cfg.verdict.max_normal_angle_deg).score
+
+    starts = []
+    for axis, centre in principal_planes(apply(T, src_ref.points)) + principal_planes(tgt_ref.points):
+        turn = np.eye(4)
+        turn[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)  # half a turn about ``axis``
+        turn[:3, 3] = centre - turn[:3, :3] @ centre
+        starts.append(turn @ T)
+    floor = TURN_START_RATIO * coarse(T)
+    ranked = sorted(((score, i) for i, S in enumerate(starts) if (score := coarse(S)) >= floor), reverse=True)
+    return [starts[i] for _, i in ranked[:count]]
 
 
 #: the reflection the mirror checks apply to the source (any reflection is this one up to a rotation)

@@ -405,7 +405,7 @@ def mirror_config(cfg: EngineConfig, overlap: float) -> EngineConfig:
     update: dict[str, object] = {
         "source_halves_below": 0.0,
         "outer": cfg.outer.model_copy(update={"max_iterations": 1}),
-        "verdict": cfg.verdict.model_copy(update={"refined_finalists": 2, "slide_steps": ()}),
+        "verdict": cfg.verdict.model_copy(update={"refined_finalists": 2, "slide_steps": (), "turned_finalists": 0}),
     }
     if cfg.overlap == "auto" and any(abs(overlap - r) < 1e-9 for r in cfg.overlap_candidates):
         update["overlap"] = overlap
