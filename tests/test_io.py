@@ -1000,8 +1000,10 @@ def test_a_line_stored_as_float32_is_collinear_within_its_rounding(tmp_path, rng
     with pytest.raises(PointCloudError) as ei:
         load_point_cloud(path)
     assert_error(ei, path, "collinear", "2000 points on one line, within the float32 rounding")
-    strip = np.c_[rng.uniform(0, 100, 500), rng.uniform(0, 0.5, 500), np.zeros(500)] + [5e5, 5e6, 200.0]
-    assert len(load_point_cloud(_saved(tmp_path / "strip.ply", strip))) == 500  # float64: a strip, kept
+    # a float32 strip 5 m wide at UTM-size offsets (steps of 0.5 m) is wider than its rounding: kept
+    strip = (np.c_[rng.uniform(0, 100, 500), rng.uniform(0, 5, 500), rng.uniform(0, 5, 500)]
+             + [5e5, 5e6, 200.0]).astype(np.float32)
+    assert len(load_point_cloud(_saved(tmp_path / "strip.ply", strip))) == 500
 
 
 def _saved(path: Path, points: np.ndarray) -> Path:
@@ -1120,6 +1122,8 @@ def test_read_matrix_lenient_layout(tmp_path):
         ("1;0;0;0\n0;1;0;0\n0;0;1;0\n0;0;0;1\n", ["line 1", "';' does not separate numbers", "spaces or commas"]),
         ("[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n", ["16 values", "brackets are not read"]),
         ("1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n", ["16 values", "four lines of four numbers"]),
+        ("[[1. 0. 0. 0.]\n [0. 1. 0. 0.]\n [0. 0. 1. 0.]\n [0. 0. 0. 1.]]\n", ["non-numeric", "brackets are not read"]),
+        ("1; 0; 0; 0\n0; 1; 0; 0\n0; 0; 1; 0\n0; 0; 0; 1\n", ["non-numeric", "';' does not separate numbers"]),
         ("1 0 0 0\n0 one 0 0\n0 0 1 0\n0 0 0 1\n", ["line 2", "non-numeric"]),
         ("1_0 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["line 1", "non-numeric"]),
         ("1 0 0 nan\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", ["non-finite", "(0,3)"]),
@@ -1239,6 +1243,11 @@ def test_float32_coordinates_written_as_text_get_the_float32_note(tmp_path):
     note = coarse_step_note(np.loadtxt(path))
     assert note is not None and "steps of 0.0312 along x and y" in note and "float32 values as far" in note
     assert coarse_step_note(bunny + [3e5, 3e5, 200.0]) is None  # the same offset in float64: no note
+    # a float64 axis thinner than the snapping tolerance (1 cm at a UTM northing) falls on one float32 value:
+    # no lattice, no note (it crashed the reader: an empty list of gaps)
+    thin = np.random.default_rng(1).uniform(0, 0.03, (2000, 3)) + [5e5, 5e6, 100.0]
+    assert coarse_step_note(thin) is None
+    assert len(load_point_cloud(_saved(tmp_path / "thin.ply", thin))) == 2000
 
 
 def test_a_float32_axis_collapsed_to_two_levels_is_the_one_named(tmp_path, caplog):

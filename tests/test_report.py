@@ -105,6 +105,7 @@ def test_report_has_every_pair_summary_and_plot(failing_set, fast_config, tmp_pa
     assert sorted(r["data-pair"] for r in page.rows) == sorted(ids) and len(page.rows) == 7
     assert [r["data-pair"] for r in page.rows] == [p.pair_id for p in failing_set.specs()]  # the manifest's order
     assert "snapshot</th>" not in text and "class=\"thumb" not in text  # no snapshots asked for: no column
+    assert all(len(cells) == len(COLUMNS) for cells in page.cells)  # a cell under every header, no more
     assert "gctr refuses rather than guess" in text and "not how precise it is" in text
     assert page.headers == [c[0] for c in COLUMNS]
     status = dict(zip(column(page, "pair_id"), column(page, "status")))

@@ -155,9 +155,13 @@ def coarse_step_note(points: np.ndarray, core: np.ndarray | None = None) -> str 
             values = np.unique(points[:: max(1, len(points) // COARSE_STEP_SAMPLE), axis])
             if len(values) < 2:
                 continue
-        snapped = values.astype(np.float32).astype(np.float64)
-        if np.all(np.abs(snapped - values) <= FLOAT32_PRINTED_RTOL * np.abs(values)):
-            values = np.unique(snapped)  # float32 values written as text: their steps are float32's
+        with np.errstate(over="ignore"):  # beyond float32's range: inf, which no value is near
+            snapped = values.astype(np.float32).astype(np.float64)
+        # float32 values written as text: their steps are float32's (unless they all fall on one float32
+        # value: a float64 axis thinner than that tolerance, which is no lattice)
+        if (np.all(np.abs(snapped - values) <= FLOAT32_PRINTED_RTOL * np.abs(values))
+                and len(snapped_values := np.unique(snapped)) >= 2):
+            values = snapped_values
         gaps = np.diff(values)
         step = float(gaps.min())
         if step <= COARSE_STEP_RATIO * diagonal:
@@ -319,10 +323,12 @@ def _collinear(pts: np.ndarray) -> str | None:
     spread = np.linalg.svd(centred, compute_uv=False) / np.sqrt(len(pts))  # RMS along each principal direction
     if spread[1] < COLLINEAR_RTOL * spread[0]:
         return ""
-    if np.array_equal(pts.astype(np.float32), pts):  # stored as float32 (or as few digits)
+    with np.errstate(over="ignore"):  # beyond float32's range: inf, never equal
+        stored32 = np.array_equal(pts.astype(np.float32), pts)  # stored as float32 (or as few digits)
+    if stored32:
         ulp = float(np.spacing(np.float32(np.abs(pts).max())))
-        # only where float32 keeps the line's length finely (else the coordinates are too coarse to tell a
-        # line from anything else, which the coarse-coordinates note says)
-        if spread[1] <= ulp and spread[0] >= 1000.0 * ulp:
+        # only where the line is long against float32's step (from about 100 steps along its length the
+        # coarse-coordinates note no longer covers it; a strip 3 steps wide is no wider than its rounding)
+        if spread[1] <= ulp and spread[0] >= 30.0 * ulp:
             return ", within the float32 rounding of its coordinates"
     return None

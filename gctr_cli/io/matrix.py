@@ -50,7 +50,9 @@ def read_matrix(path: str | Path) -> np.ndarray:
                 raise ValueError
             rows.append([float(t) for t in tokens])
         except ValueError:
-            raise MatrixError(f"{path}: line {lineno} contains a non-numeric value: {quote(raw.strip(), 80)}") from None
+            hint = _layout_hint(line) if any(c in line for c in ";[]()") else ""
+            raise MatrixError(f"{path}: line {lineno} contains a non-numeric value: {quote(raw.strip(), 80)}"
+                              + (f" ({hint})" if hint else "")) from None
     if len(rows) != 4:
         raise MatrixError(f"{path}: expected 4 rows of 4 numbers, found {len(rows)}")
     T = np.array(rows, dtype=np.float64)
