@@ -552,13 +552,11 @@ def _pair_rows(w: Any, rows: Sequence[dict[str, str]], errs: dict[str, dict[str,
                  **{k: e.get(k, "") for k in ("rot_err_deg", "trans_err_rel", "scale_err", "tm_err", "success")}}
         cls = "ok" if status == "ok" else "failed"
         w(f"<tr class=\"{cls}\" data-status=\"{_e(cls)}\" data-pair=\"{_e(pid)}\">")
-        if snap_dir is None:
-            pass
-        elif (snap_dir / f"{pid}.png").exists():
+        if snap_dir is not None and (snap_dir / f"{pid}.png").exists():
             href = "snapshots/" + quote(f"{pid}.png")
             w(f"<td class=\"thumb\"><a href=\"{_e(href)}\"><img src=\"{_e(href)}\" loading=\"lazy\" width=\"108\" "
               f"height=\"72\" alt=\"snapshot of {_e(pid)}\"></a></td>")
-        else:
+        elif snap_dir is not None:
             w("<td class=\"thumb none\">&ndash;</td>")
         for key, _label, typ, _tip in COLUMNS:
             raw = cells.get(key, "")

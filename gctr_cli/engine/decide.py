@@ -172,14 +172,19 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     height_map = functools.cache(lambda: target_heights(tgt_ref, test, cfg))  # built once, if the relief is asked
     T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test, height_map,
                                         known)
+
+    def new_alignments(starts: list[np.ndarray]) -> list[tuple[np.ndarray, Agreement]]:
+        """``starts`` refined, those that end at another alignment than the answer (a rival by the
+        shared-data test): the others only polish the answer's own score."""
+        return [(T, a) for T, a in (_refine(S, src_ref, tgt_ref, cfg, bounds_n, timer, test, known) for S in starts)
+                if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
+
     if v.turned_finalists:
         # The answer turned half a turn about a principal axis of either cloud: a symmetric shape fits
         # as well turned (a box, a tube, a patch of a round surface), and the search need not have
         # proposed that alignment. Turns that agree well are refined and join the finalists: one that
         # fits better becomes the answer, one that fits as well makes the answer ambiguous.
-        turned = [(T, a) for T, a in (_refine(T_t, src_ref, tgt_ref, cfg, bounds_n, timer, test, known)
-                                      for T_t in likely_turns(T_answer, src_ref, tgt_ref, cfg, v.turned_finalists))
-                  if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
+        turned = new_alignments(likely_turns(T_answer, src_ref, tgt_ref, cfg, v.turned_finalists))
         if turned:
             refined = refined + turned
             T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test,
@@ -192,9 +197,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
         # Those that end at a different alignment (a rival by the shared-data test) join the finalists
         # and the verdict chooses again; those that return to the answer are dropped, so that the
         # slides never just polish the answer's own score.
-        slid = [(T, a) for T, a in (_refine(T_s, src_ref, tgt_ref, cfg, bounds_n, timer, test, known)
-                                    for T_s in slid_transforms(T_answer, free[0], v.slide_steps))
-                if shared_displacement(T, T_answer, shared, sample) > v.distinct_ratio]
+        slid = new_alignments(slid_transforms(T_answer, free[0], v.slide_steps))
         if slid:
             T_answer, verdict, _ = _judged(refined + slid, pool, candidates, src, src_ref, tgt_ref, cfg, test,
                                            height_map, known)
@@ -211,18 +214,15 @@ def likely_turns(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementClo
     """``T`` followed by a half-turn about each principal axis of the moved source and of the target (through
     its centroid): the ``count`` that agree best with the target at the inlier distance, of those that agree
     at least :data:`TURN_START_RATIO` as well as ``T`` does (starts for the verdict's refinement)."""
-    def coarse(S: np.ndarray) -> float:
-        return surface_agreement(S, src_ref.surface, tgt_ref.surface, cfg.inlier_distance_ratio,
-                                 cfg.verdict.max_normal_angle_deg).score
-
     starts = []
-    for axis, centre in principal_planes(apply(T, src_ref.points)) + principal_planes(tgt_ref.points):
+    for axis, centre in both_principal_planes(T, src_ref, tgt_ref):
         turn = np.eye(4)
         turn[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)  # half a turn about ``axis``
         turn[:3, 3] = centre - turn[:3, :3] @ centre
         starts.append(turn @ T)
-    floor = TURN_START_RATIO * coarse(T)
-    ranked = sorted(((score, i) for i, S in enumerate(starts) if (score := coarse(S)) >= floor), reverse=True)
+    floor = TURN_START_RATIO * coarse_agreement(T, src_ref, tgt_ref, cfg)
+    ranked = sorted(((score, i) for i, S in enumerate(starts)
+                     if (score := coarse_agreement(S, src_ref, tgt_ref, cfg)) >= floor), reverse=True)
     return [starts[i] for _, i in ranked[:count]]
 
 
@@ -251,12 +251,8 @@ def reflected_fit(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCl
     starts = reflection_starts(T, src_ref, tgt_ref)
     # Only the likeliest start is refined (ICP is the cost), ranked as the search ranks, at the inlier
     # distance; and only when it agrees with the target nearly as well as the answer does there.
-    def coarse(S: np.ndarray, cloud: RefinementCloud) -> float:
-        return surface_agreement(S, cloud.surface, tgt_ref.surface, cfg.inlier_distance_ratio,
-                                 cfg.verdict.max_normal_angle_deg).score
-
-    ranked = sorted(((coarse(S, mirrored), i) for i, S in enumerate(starts)), reverse=True)
-    if ranked[0][0] < REFLECTION_START_RATIO * coarse(T, src_ref):
+    ranked = sorted(((coarse_agreement(S, mirrored, tgt_ref, cfg), i) for i, S in enumerate(starts)), reverse=True)
+    if ranked[0][0] < REFLECTION_START_RATIO * coarse_agreement(T, src_ref, tgt_ref, cfg):
         return answer, float("nan")
     short = cfg.model_copy(update={"refine": cfg.refine.model_copy(update={"iterations": REFLECTION_ICP_ITERATIONS})})
     return answer, _refine(starts[ranked[0][1]], mirrored, tgt_ref, short, bounds_n, StageTimer({}), test)[1].score
@@ -279,12 +275,25 @@ def reflection_starts(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: Refineme
     each as a proper similarity of the source mirrored by :data:`MIRROR` (the starts of :func:`reflected_fit`)."""
     flip = np.diag([*MIRROR, 1.0])
     starts = []
-    for normal, centre in principal_planes(apply(T, src_ref.points)) + principal_planes(tgt_ref.points):
+    for normal, centre in both_principal_planes(T, src_ref, tgt_ref):
         plane = np.eye(4)
         plane[:3, :3] -= 2.0 * np.outer(normal, normal)
         plane[:3, 3] = 2.0 * float(centre @ normal) * normal
         starts.append(plane @ T @ flip)
     return starts
+
+
+def coarse_agreement(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig) -> float:
+    """Surface agreement of ``T`` at the inlier distance, as the search ranks transforms: how a start of the
+    reflection and half-turn checks is judged before it is worth an ICP."""
+    return surface_agreement(T, src_ref.surface, tgt_ref.surface, cfg.inlier_distance_ratio,
+                             cfg.verdict.max_normal_angle_deg).score
+
+
+def both_principal_planes(T: np.ndarray, src_ref: RefinementCloud,
+                          tgt_ref: RefinementCloud) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The principal planes of the source moved by ``T`` and of the target (:func:`principal_planes`)."""
+    return principal_planes(apply(T, src_ref.points)) + principal_planes(tgt_ref.points)
 
 
 def principal_planes(points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

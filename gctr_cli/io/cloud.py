@@ -324,11 +324,10 @@ def _collinear(pts: np.ndarray) -> str | None:
     if spread[1] < COLLINEAR_RTOL * spread[0]:
         return ""
     with np.errstate(over="ignore"):  # beyond float32's range: inf, never equal
-        stored32 = np.array_equal(pts.astype(np.float32), pts)  # stored as float32 (or as few digits)
-    if stored32:
         ulp = float(np.spacing(np.float32(np.abs(pts).max())))
         # only where the line is long against float32's step (from about 100 steps along its length the
-        # coarse-coordinates note no longer covers it; a strip 3 steps wide is no wider than its rounding)
-        if spread[1] <= ulp and spread[0] >= 30.0 * ulp:
+        # coarse-coordinates note no longer covers it; a strip 3 steps wide is no wider than its rounding),
+        # and only for coordinates stored as float32 (or as few digits): the cast last, as it reads every point
+        if spread[1] <= ulp and spread[0] >= 30.0 * ulp and np.array_equal(pts.astype(np.float32), pts):
             return ", within the float32 rounding of its coordinates"
     return None

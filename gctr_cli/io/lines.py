@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from gctr_cli.io.cloud import ATTRIBUTE_NOTE, integer_misfit
-from gctr_cli.io.errors import PointCloudError, clean, quote
+from gctr_cli.io.errors import PointCloudError, clean, content_hint, quote
 
 __all__ = ["MAX_LINE", "LineReader", "as_declared", "binary_data", "header_line", "numeric_text", "parse_float",
            "read_rows"]
@@ -37,6 +37,14 @@ def _peek(fh, n: int = 256) -> bytes:
     data = fh.read(n)
     fh.seek(start)
     return data
+
+
+def content_note(fh) -> str:
+    """``; `` and what the first bytes of the open file ``fh`` show it to be (:func:`content_hint`), or "":
+    the end of a reader's "not a PLY / PCD file" message."""
+    fh.seek(0)
+    hint = content_hint(fh.read(512))
+    return f"; {hint}" if hint else ""
 
 
 def header_line(raw: bytes) -> str:

@@ -42,7 +42,7 @@ def read_matrix(path: str | Path) -> np.ndarray:
         tokens = line.split()
         if len(tokens) != 4:
             raise MatrixError(f"{path}: line {lineno} has {len(tokens)} values, expected 4 numbers: "
-                              f"{quote(raw.strip(), 80)} ({_layout_hint(line)})")
+                              f"{quote(raw.strip(), 80)} ({_layout_hint(line) or FOUR_BY_FOUR})")
         if len(rows) == 4:
             raise MatrixError(f"{path}: more than 4 rows of numbers (extra row on line {lineno})")
         try:
@@ -50,7 +50,7 @@ def read_matrix(path: str | Path) -> np.ndarray:
                 raise ValueError
             rows.append([float(t) for t in tokens])
         except ValueError:
-            hint = _layout_hint(line) if any(c in line for c in ";[]()") else ""
+            hint = _layout_hint(line)
             raise MatrixError(f"{path}: line {lineno} contains a non-numeric value: {quote(raw.strip(), 80)}"
                               + (f" ({hint})" if hint else "")) from None
     if len(rows) != 4:
@@ -60,13 +60,17 @@ def read_matrix(path: str | Path) -> np.ndarray:
     return T
 
 
+#: how a matrix file is laid out, for a line that is not
+FOUR_BY_FOUR = "a matrix file is four lines of four numbers, separated by spaces or commas"
+
+
 def _layout_hint(line: str) -> str:
-    """What to change in a matrix line that does not hold four numbers."""
+    """What to change in a matrix line written in another layout (semicolons, brackets), or ""."""
     if ";" in line:
         return "';' does not separate numbers here: use spaces or commas, and '.' for decimals"
     if any(c in line for c in "[]()"):
         return "brackets are not read: write the numbers alone, four lines of four"
-    return "a matrix file is four lines of four numbers, separated by spaces or commas"
+    return ""
 
 
 def write_matrix(path: str | Path, T: np.ndarray) -> None:

@@ -20,8 +20,17 @@ from pathlib import Path
 import numpy as np
 
 from gctr_cli.io.cloud import PointCloud, eight_bit_colours, element_columns, named_normals
-from gctr_cli.io.errors import PointCloudError, clean, content_hint, quote
-from gctr_cli.io.lines import LineReader, as_declared, binary_data, header_line, numeric_text, parse_float, read_rows
+from gctr_cli.io.errors import PointCloudError, clean, quote
+from gctr_cli.io.lines import (
+    LineReader,
+    as_declared,
+    binary_data,
+    content_note,
+    header_line,
+    numeric_text,
+    parse_float,
+    read_rows,
+)
 from gctr_cli.io.ply import format_columns, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]
@@ -210,13 +219,6 @@ def _read_compressed(path: Path, fh, hdr: _Header, data_bytes: int, keep: list[i
             .reshape((n, hdr.counts[i]) if hdr.counts[i] > 1 else (n,)) for i in keep}
 
 
-def _content(fh) -> str:
-    """``; `` and what the file's first bytes show it to be (:func:`content_hint`), or nothing."""
-    fh.seek(0)
-    hint = content_hint(fh.read(512))
-    return f"; {hint}" if hint else ""
-
-
 def _parse_header(fh, path: Path) -> _Header:
     vals: dict[str, list[str]] = {}
     lineno = 0
@@ -230,7 +232,7 @@ def _parse_header(fh, path: Path) -> _Header:
             break
         if consumed > MAX_HEADER_BYTES or (len(raw) == MAX_HEADER_LINE and not raw.endswith(b"\n")):
             raise PointCloudError(f"{path}: not a PCD file (header line {lineno} is too long / not text"
-                                  f"{_content(fh) if not vals else ''})")
+                                  f"{content_note(fh) if not vals else ''})")
         line = header_line(raw)
         if not line or line.startswith("#"):
             continue
@@ -238,8 +240,8 @@ def _parse_header(fh, path: Path) -> _Header:
         key = words[0].upper()
         if key not in _KEYS:
             if not vals:
-                raise PointCloudError(
-                    f"{path}: not a PCD file (header line {lineno} does not start with a PCD keyword{_content(fh)})")
+                raise PointCloudError(f"{path}: not a PCD file (header line {lineno} does not start with a PCD "
+                                      f"keyword{content_note(fh)})")
             if parse_float(words[0].encode("utf-8")) is not None:
                 raise PointCloudError(f"{path}: broken PCD header: missing DATA line (numeric data on line {lineno})")
             raise PointCloudError(f"{path}: broken PCD header: unknown keyword {quote(words[0])} on line {lineno}")

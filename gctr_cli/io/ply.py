@@ -20,8 +20,17 @@ from pathlib import Path
 import numpy as np
 
 from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, named_normals
-from gctr_cli.io.errors import PointCloudError, clean, content_hint, quote
-from gctr_cli.io.lines import LineReader, as_declared, binary_data, header_line, numeric_text, parse_float, read_rows
+from gctr_cli.io.errors import PointCloudError, clean, quote
+from gctr_cli.io.lines import (
+    LineReader,
+    as_declared,
+    binary_data,
+    content_note,
+    header_line,
+    numeric_text,
+    parse_float,
+    read_rows,
+)
 
 __all__ = ["ply_bytes", "read_ply"]
 
@@ -74,8 +83,7 @@ class _Element:
 def read_ply(path: Path, fh, size: int, attributes: bool = True) -> PointCloud:
     magic = fh.read(4)
     if not (magic[:3] == b"ply" and magic[3:4] in (b"\n", b"\r")):
-        hint = content_hint(magic + fh.read(508))
-        raise PointCloudError(f"{path}: not a PLY file (missing 'ply' magic{'; ' + hint if hint else ''})")
+        raise PointCloudError(f"{path}: not a PLY file (missing 'ply' magic{content_note(fh)})")
     if magic[3:4] == b"\r" and fh.read(1) != b"\n":
         raise PointCloudError(f"{path}: PLY header lines end in a carriage return only (classic Mac OS line ends); "
                               "PLY needs LF or CR LF line ends: convert them (an ASCII PLY with e.g. tr '\\r' '\\n'; "
