@@ -13,7 +13,7 @@ def test_default_yaml_matches_the_built_in_defaults():
     assert load_config(CONFIGS / "default.yaml") == Config()
 
 
-@pytest.mark.parametrize("name", ["default.yaml", "fast.yaml", "accurate.yaml", "scene.yaml"])
+@pytest.mark.parametrize("name", ["default.yaml", "fast.yaml", "accurate.yaml", "scene.yaml", "rigid.yaml"])
 def test_shipped_config_is_valid(name):
     cfg = load_config(CONFIGS / name)
     assert cfg.method == "gctr"
@@ -32,6 +32,16 @@ def test_scene_config_only_raises_the_threshold():
     default = Config()
     same_threshold = scene.engine.model_copy(update={"min_confidence": default.engine.min_confidence})
     assert scene.model_copy(update={"engine": same_threshold}) == default
+
+
+def test_rigid_config_only_holds_the_scale_near_one():
+    """configs/rigid.yaml is the defaults with scale_bounds [0.99, 1.01] (docs/config.md's advice for a
+    pair known to be rigid)."""
+    rigid = load_config(CONFIGS / "rigid.yaml")
+    assert rigid.engine.scale_bounds == (0.99, 1.01)
+    default = Config()
+    wide = rigid.engine.model_copy(update={"scale_bounds": default.engine.scale_bounds})
+    assert rigid.model_copy(update={"engine": wide}) == default
 
 
 def test_slide_steps_must_be_shares_of_the_smaller_cloud():

@@ -282,13 +282,9 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
         # held at a bound as well: a lower threshold would refuse it as held, so no threshold accepts it
         status, refusal, message = "failed", "scale_held" if held else "low_confidence", refusal_message(verdict, cfg)
         if held:
-            message += (f"; its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] "
-                        f"(refined without it: {free:.4g}; at this confidence that alone does not show that the units "
-                            "differ: widen scale_bounds only if they may)")
+            message += "; " + held_message(scale, held, free, (lo, hi), confident=False)
     elif held:
-        status, refusal = "failed", "scale_held"
-        message = (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}]: refined "
-                   f"without it, the alignment moves to scale {free:.4g} (widen scale_bounds)")
+        status, refusal, message = "failed", "scale_held", held_message(scale, held, free, (lo, hi), confident=True)
     if status == "ok" and confirm and verdict.confidence < cfg.verdict.reverse_below:
         t = time.perf_counter()
         moved = reverse_displacement(source, target, cfg, seed, T_n, ns, nt, src.surface.sample)
@@ -392,6 +388,27 @@ def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, Refineme
     if tight_agreement(T_free, src_ref, tgt_ref, test).score >= tight_agreement(T_n, src_ref, tgt_ref, test).score:
         return T_free, "", free
     return T_n, "", free
+
+
+def held_message(scale: float, held: str, free: float, bounds: tuple[float, float], confident: bool) -> str:
+    """Why an answer held at the ``held`` end of ``bounds`` is refused (``free``: its scale refined without
+    them). Wide bounds are a search range: a scale pinned at one end suggests the true one lies beyond
+    (other units), so the message says to widen them. Bounds narrower than ``NEAR_BOUND ** 2`` state a
+    known scale (a rigid pair: [0.99, 1.01]): every answer lies near an end, and one that drifts beyond
+    it when the scale is freed is an alignment that does not hold at that scale (raw range scans that
+    barely overlap, laid shell on shell, came back at 0.46-0.55 and drifted 5-15%); widening them would
+    let it through."""
+    lo, hi = bounds
+    if hi / lo <= NEAR_BOUND ** 2:
+        return (f"refined with a free scale, the alignment moves to scale {free:.4g}, beyond the {held} end of "
+                f"engine.scale_bounds [{lo}, {hi}] (the answer's scale: {scale:.4g}): it does not hold at the "
+                "scale the bounds allow (widen scale_bounds only if the true scale may lie beyond them)")
+    if confident:
+        return (f"scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}]: refined "
+                f"without it, the alignment moves to scale {free:.4g} (widen scale_bounds)")
+    return (f"its scale {scale:.4g} is held by the {held} end of engine.scale_bounds [{lo}, {hi}] (refined without "
+            f"it: {free:.4g}; at this confidence that alone does not show that the units differ: widen "
+            "scale_bounds only if they may)")
 
 
 def mirror_config(cfg: EngineConfig, overlap: float) -> EngineConfig:
