@@ -452,6 +452,25 @@ def test_a_symmetric_shape_against_a_turned_copy_is_ambiguous(shape, seed, turn)
     assert res.status == "failed" and res.message.startswith("ambiguous"), (res.confidence, res.message)
 
 
+def test_the_half_turn_starts_are_distinct_poses():
+    """A box laid on a copy of itself: the half-turns about the source's and the target's principal axes
+    are the same three poses (0.01 apart), and the turns refined as rivals must be distinct ones, so that
+    ``verdict.turned_finalists`` = 2 tries two of the three, not one of them twice."""
+    from gctr_cli.engine.decide import likely_turns
+    from gctr_cli.engine.prepare import RefinementCloud
+
+    rng = np.random.default_rng(0)
+    cfg = EngineConfig.model_validate({"refine": {"voxel_ratio": 0.01}})
+    src, tgt = _box(6000, rng, size=(1.0, 0.6, 0.4)), _box(6000, rng, size=(1.0, 0.6, 0.4))
+    src_ref = RefinementCloud.build(src, cfg, np.random.default_rng(1))
+    tgt_ref = RefinementCloud.build(tgt, cfg, np.random.default_rng(2))
+    turns = likely_turns(np.eye(4), src_ref, tgt_ref, cfg, 6, src[:500])
+    assert len(turns) == 3  # six axes, three poses
+    gaps = [displacement(a, b, src[:500]) for i, a in enumerate(turns) for b in turns[i + 1:]]
+    assert min(gaps) > 0.5  # each pair of turns moves the box by half its length or more
+    assert all(displacement(T, np.eye(4), src[:500]) > 0.5 for T in turns)
+
+
 def test_threshold_is_a_config_key():
     """A pair that passes at the default threshold is refused at a strict one, with the
     low-confidence message naming the threshold; the failed result still carries the best transform.

@@ -184,7 +184,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
         # as well turned (a box, a tube, a patch of a round surface), and the search need not have
         # proposed that alignment. Turns that agree well are refined and join the finalists: one that
         # fits better becomes the answer, one that fits as well makes the answer ambiguous.
-        turned = new_alignments(likely_turns(T_answer, src_ref, tgt_ref, cfg, v.turned_finalists))
+        turned = new_alignments(likely_turns(T_answer, src_ref, tgt_ref, cfg, v.turned_finalists, sample))
         if turned:
             refined = refined + turned
             T_answer, verdict, shared = _judged(refined, pool, candidates, src, src_ref, tgt_ref, cfg, test,
@@ -210,10 +210,13 @@ TURN_START_RATIO = 0.5
 
 
 def likely_turns(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
-                 count: int) -> list[np.ndarray]:
+                 count: int, sample: np.ndarray) -> list[np.ndarray]:
     """``T`` followed by a half-turn about each principal axis of the moved source and of the target (through
     its centroid): the ``count`` that agree best with the target at the inlier distance, of those that agree
-    at least :data:`TURN_START_RATIO` as well as ``T`` does (starts for the verdict's refinement)."""
+    at least :data:`TURN_START_RATIO` as well as ``T`` does, each distinct from the better ones (it moves the
+    source ``sample`` by more than ``verdict.distinct_ratio``: where the answer lines the two clouds' axes
+    up, the turn about the source's axis and about the target's are one pose) — starts for the verdict's
+    refinement."""
     starts = []
     for axis, centre in both_principal_planes(T, src_ref, tgt_ref):
         turn = np.eye(4)
@@ -223,7 +226,13 @@ def likely_turns(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementClo
     floor = TURN_START_RATIO * coarse_agreement(T, src_ref, tgt_ref, cfg)
     ranked = sorted(((score, i) for i, S in enumerate(starts)
                      if (score := coarse_agreement(S, src_ref, tgt_ref, cfg)) >= floor), reverse=True)
-    return [starts[i] for _, i in ranked[:count]]
+    chosen: list[np.ndarray] = []
+    for _, i in ranked:
+        if len(chosen) == count:
+            break
+        if all(displacement(starts[i], S, sample) > cfg.verdict.distinct_ratio for S in chosen):
+            chosen.append(starts[i])
+    return chosen
 
 
 #: the reflection the mirror checks apply to the source (any reflection is this one up to a rotation)
