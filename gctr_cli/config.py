@@ -226,8 +226,8 @@ class VerdictConfig(_Strict):
     turned_finalists: int = Field(
         2, ge=0, le=6,
         description="every answer is also turned half a turn about the principal axes of both clouds, and up to "
-                    "this many turns that agree well are refined and judged as finalists: a symmetric shape (a "
-                    "box, a cylinder, a patch that fits turned) has a rival the search may not have proposed; "
+                    "this many distinct turns that agree well are refined and judged as finalists: a symmetric "
+                    "shape (a box, a cylinder, a patch that fits turned) has a rival the search may not have proposed; "
                     "0 = off")
     slide_free_ratio: float = Field(
         0.05, ge=0, lt=1,
