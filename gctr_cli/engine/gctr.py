@@ -395,9 +395,10 @@ def held_message(scale: float, held: str, free: float, bounds: tuple[float, floa
     them). Wide bounds are a search range: a scale pinned at one end suggests the true one lies beyond
     (other units), so the message says to widen them. Bounds narrower than ``NEAR_BOUND ** 2`` state a
     known scale (a rigid pair: [0.99, 1.01]): every answer lies near an end, and one that drifts beyond
-    it when the scale is freed is an alignment that does not hold at that scale (raw range scans that
-    barely overlap, laid shell on shell, came back at 0.46-0.55 and drifted 5-15%); widening them would
-    let it through."""
+    it when the scale is freed is an alignment that does not hold at that scale (six wrong answers on raw
+    range scans that barely overlap, at confidence 0.15-0.55, drifted 1.5-28% beyond the bound); widening
+    them would let it through. Under such bounds ``confident`` makes no difference: a low-confidence
+    refusal gets the same words after its own."""
     lo, hi = bounds
     if hi / lo <= NEAR_BOUND ** 2:
         return (f"refined with a free scale, the alignment moves to scale {free:.4g}, beyond the {held} end of "
