@@ -469,6 +469,8 @@ def test_the_half_turn_starts_are_distinct_poses():
     gaps = [displacement(a, b, src[:500]) for i, a in enumerate(turns) for b in turns[i + 1:]]
     assert min(gaps) > 0.5  # each pair of turns moves the box by half its length or more
     assert all(displacement(T, np.eye(4), src[:500]) > 0.5 for T in turns)
+    two = likely_turns(np.eye(4), src_ref, tgt_ref, cfg, 2, src[:500])  # the default count: two poses
+    assert len(two) == 2 and displacement(two[0], two[1], src[:500]) > 0.5
 
 
 def test_threshold_is_a_config_key():
