@@ -397,8 +397,9 @@ def held_message(scale: float, held: str, free: float, bounds: tuple[float, floa
     known scale (a rigid pair: [0.99, 1.01]): every answer lies near an end, and one that drifts beyond
     it when the scale is freed is an alignment that does not hold at that scale (six wrong answers on raw
     range scans that barely overlap, at confidence 0.15-0.55, drifted 1.5-28% beyond the bound); widening
-    them would let it through. Under such bounds ``confident`` makes no difference: a low-confidence
-    refusal gets the same words after its own."""
+    them would let it through. But on noisy clouds a right answer refined with a free scale ends 1.5-4% low,
+    so such bounds suit low-noise scans only (docs/config.md, ``configs/rigid.yaml``). Under such bounds
+    ``confident`` makes no difference: a low-confidence refusal gets the same words after its own."""
     lo, hi = bounds
     if hi / lo <= NEAR_BOUND ** 2:
         return (f"refined with a free scale, the alignment moves to scale {free:.4g}, beyond the {held} end of "
