@@ -591,6 +591,8 @@ def test_the_rigid_config_registers_scans_of_one_scanner_and_refuses_another_sca
     larger = register(1.03 * src, tgt, cfg, seed=0)
     assert larger.status == "failed" and larger.refusal == "scale_held", larger.message
     assert larger.message.startswith("refined with a free scale, the alignment moves to scale "), larger.message
+    assert "beyond the lower end of engine.scale_bounds [0.99, 1.01]" in larger.message
+    assert "widen scale_bounds only if the true scale may lie beyond them" in larger.message
     free = float(larger.message.split("moves to scale ")[1].split(",")[0])
     assert abs(free * 1.03 - 1.0) < 0.01  # it finds the true scale, 1 / 1.03
     # a refusal for low confidence that drifts too says both (chin and bun090 share little: refused either way)
@@ -598,5 +600,3 @@ def test_the_rigid_config_registers_scans_of_one_scanner_and_refuses_another_sca
     assert weak.status == "failed" and weak.message.startswith("low confidence"), weak.message
     assert "; refined with a free scale, the alignment moves to scale " in weak.message
     assert weak.refusal == "scale_held"  # no threshold accepts it
-    assert "beyond the lower end of engine.scale_bounds [0.99, 1.01]" in larger.message
-    assert "widen scale_bounds only if the true scale may lie beyond them" in larger.message

@@ -156,16 +156,7 @@ def decide(candidates: list[Candidate], src: PreparedCloud, src_ref: RefinementC
     pool = [(c.transform, c.agreement) for c in candidates] + [alt for c in candidates for alt in c.alternatives]
     pool.sort(key=lambda item: -item[1].score)
     sample = src.surface.sample
-
-    def distinct(T1: np.ndarray, T2: np.ndarray) -> bool:
-        return displacement(T1, T2, sample) > v.distinct_ratio
-
-    finalists: list[np.ndarray] = []
-    for T, _ in pool:
-        if all(distinct(T, F) for F in finalists):
-            finalists.append(T)
-            if len(finalists) == v.refined_finalists:
-                break
+    finalists = first_distinct([T for T, _ in pool], sample, v.distinct_ratio, v.refined_finalists)
     test = tight_test(src_ref, tgt_ref, similarity_scale(pool[0][0]), cfg)
     known: dict[bytes, Agreement] = {}  # tight agreements by transform: each computed once
     refined = [_refine(T, src_ref, tgt_ref, cfg, bounds_n, timer, test, known) for T in finalists]
@@ -226,12 +217,19 @@ def likely_turns(T: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementClo
     floor = TURN_START_RATIO * coarse_agreement(T, src_ref, tgt_ref, cfg)
     ranked = sorted(((score, i) for i, S in enumerate(starts)
                      if (score := coarse_agreement(S, src_ref, tgt_ref, cfg)) >= floor), reverse=True)
+    return first_distinct([starts[i] for _, i in ranked], sample, cfg.verdict.distinct_ratio, count)
+
+
+def first_distinct(transforms: list[np.ndarray], sample: np.ndarray, distinct_ratio: float,
+                   count: int) -> list[np.ndarray]:
+    """The first ``count`` of ``transforms`` (best first) that each move ``sample`` by more than
+    ``distinct_ratio`` from every one kept before: the verdict's finalists, and its half-turn starts."""
     chosen: list[np.ndarray] = []
-    for _, i in ranked:
+    for T in transforms:
         if len(chosen) == count:
             break
-        if all(displacement(starts[i], S, sample) > cfg.verdict.distinct_ratio for S in chosen):
-            chosen.append(starts[i])
+        if all(displacement(T, S, sample) > distinct_ratio for S in chosen):
+            chosen.append(T)
     return chosen
 
 
