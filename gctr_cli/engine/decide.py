@@ -123,8 +123,8 @@ def _refine(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud,
 
 def icp(T_n: np.ndarray, src_ref: RefinementCloud, tgt_ref: RefinementCloud, cfg: EngineConfig,
         bounds_n: tuple[float, float]) -> np.ndarray:
-    """The refinement's scaled ICP from ``T_n`` on the refinement clouds (normalised units); it stops
-    where a step would leave ``bounds_n``."""
+    """The refinement's scaled ICP from ``T_n`` on the refinement clouds (normalised units); a step that
+    would leave ``bounds_n`` is taken with the scale held at the bound."""
     r, v = cfg.refine, cfg.verdict
     size = smaller_cloud(similarity_scale(T_n))
     start, end = r.start_ratio * size, r.end_ratio * size

@@ -360,11 +360,12 @@ def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, Refineme
     ``scale_bounds``: ``(transform, held, scale without bounds)``, ``held`` being ``"lower"``,
     ``"upper"`` or ``""``.
 
-    Every hypothesis and every refinement step stops at a bound, so a pair whose true scale lies beyond
-    it came back pinned there or a step inside (2-13% off the true scale, turned 2-6° to make up for it)
-    and was accepted, at confidence 1 for a true scale 5% beyond. So an answer within
-    :data:`NEAR_BOUND` of a finite end is refined once more without bounds. If that ends beyond the
-    end by more than :data:`BOUND_TOLERANCE`, the answer is held there (refused by the caller).
+    Every hypothesis and every refinement step keeps within the bounds, so a pair whose true scale lies
+    beyond them came back pinned at a bound (before the refinement held the scale there, it stopped a step
+    inside: 2-13% off the true scale, turned 2-6°) and was accepted, at confidence 1 for a true scale 5%
+    beyond. So an answer within :data:`NEAR_BOUND` of a finite end is refined once more without bounds.
+    If that ends beyond the end by more than :data:`BOUND_TOLERANCE`, the answer is held there (refused by
+    the caller).
     Otherwise the unbounded refinement is the answer when the verdict's tight test scores it at least
     as well (and ``refine.enabled``): a true scale on a bound (10 for a cm/mm pair) or just beyond came
     back held a step inside it and turned 3-5°. The refinement's time is booked under ``refine``.
@@ -395,9 +396,9 @@ def held_message(scale: float, held: str, free: float, bounds: tuple[float, floa
     them). Wide bounds are a search range: a scale pinned at one end suggests the true one lies beyond
     (other units), so the message says to widen them. Bounds narrower than ``NEAR_BOUND ** 2`` state a
     known scale (a rigid pair: [0.99, 1.01]): every answer lies near an end, and one that drifts beyond
-    it when the scale is freed is an alignment that does not hold at that scale (six wrong answers on raw
-    range scans that barely overlap, at confidence 0.15-0.55, drifted 1.5-28% beyond the bound); widening
-    them would let it through. But on noisy clouds a right answer refined with a free scale ends 1.5-4% low,
+    it when the scale is freed is an alignment that does not hold at that scale (36 wrong answers on 302 raw
+    range scan pairs, at confidence 0.15-0.60, drifted 0.7-35% beyond the bound); widening them would let
+    it through. But on noisy clouds a right answer refined with a free scale ends 1.5-4% low,
     so such bounds suit low-noise scans only (docs/config.md, ``configs/rigid.yaml``). Under such bounds
     ``confident`` makes no difference: a low-confidence refusal gets the same words after its own."""
     lo, hi = bounds

@@ -4,6 +4,11 @@ Point-to-plane by default (trimmed point-to-point optionally). Plain scaled ICP 
 partially overlapping clouds with outliers, so matches are trimmed by a distance threshold that
 shrinks geometrically from ``start`` to ``end`` and matches with incompatible normals are dropped;
 the caller (``decide._refine``) keeps the result only if the tight surface agreement does not drop.
+A step that would take the scale beyond ``scale_bounds`` is taken with the scale held at the bound (the
+rotation and translation solved for it). The ICP used to stop before such a step, so an answer whose
+refinement leans past a bound was not refined at all: under ``configs/rigid.yaml`` ([0.99, 1.01]) noisy
+pairs, whose refinement with a free scale ends 1.5-4% low, came back near the truth but 5-14° off (17 of
+124 noisy pairs made rigid; 10 of them end within 5° now).
 """
 
 from __future__ import annotations
@@ -49,7 +54,10 @@ def trimmed_scaled_icp(src: np.ndarray, tgt: np.ndarray, T0: np.ndarray, iterati
             break
         s, R, t = umeyama(src[keep], tgt[j[keep]])
         if not scale_bounds[0] <= s <= scale_bounds[1]:
-            break
+            # the best similarity at the bound: Umeyama's rotation does not depend on the scale
+            s_held = float(np.clip(s, *scale_bounds))
+            t = tgt[j[keep]].mean(axis=0) - s_held * R @ src[keep].mean(axis=0)
+            s = s_held
         T_new = to_matrix(s, R, t)
         change = np.linalg.norm(T_new - T)
         T = T_new
@@ -143,6 +151,11 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
         b = -J.T @ (w * r)
         try:
             x = np.linalg.solve(A + 1e-9 * np.eye(7), b)
+            s_step = s_cur * float(np.exp(x[6]))
+            if not scale_bounds[0] <= s_step <= scale_bounds[1]:
+                # the step at the bound: the log-scale fixed there, rotation and translation solved for it
+                ds = float(np.log(np.clip(s_step, *scale_bounds) / s_cur))
+                x = np.r_[np.linalg.solve(A[:6, :6] + 1e-9 * np.eye(6), b[:6] - A[:6, 6] * ds), ds]
         except np.linalg.LinAlgError:
             break
         step = _small_similarity(x)
@@ -150,11 +163,7 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
         C[:3, 3] = centre
         Ci = np.eye(4)
         Ci[:3, 3] = -centre
-        T_new = C @ step @ Ci @ T
-        s_new = float(np.linalg.det(T_new[:3, :3]) ** (1 / 3))
-        if not scale_bounds[0] <= s_new <= scale_bounds[1]:
-            break
-        T = T_new
+        T = C @ step @ Ci @ T
         if np.linalg.norm(x) < 1e-7 and tau <= end * 1.001:
             break
     return T, it
