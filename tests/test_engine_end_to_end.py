@@ -547,8 +547,8 @@ def test_true_scale_beyond_scale_bounds_is_refused_not_pinned(true_scale, bounds
     (10.02, (0.1, 10.0), 3), (0.0996, (0.1, 10.0), 4), (2.009, (0.5, 2.0), 3)])
 def test_a_true_scale_at_or_just_inside_a_bound_is_accepted(true_scale, bounds, seed):
     """A 10x unit change sits on the default upper bound; it must stay a right answer, not a refusal,
-    and within the tolerance (0.5%) beyond a bound it is the unbounded refinement's answer: held a step
-    inside, it came back turned 3-5°."""
+    and within the tolerance (0.5%) beyond a bound it is the unbounded refinement's answer (held a step
+    inside, before the refinement held the scale at the bound, it came back turned 3-5°)."""
     src, tgt, T = _scaled_half_bunny(true_scale, seed)
     res = register(src, tgt, EngineConfig(scale_bounds=bounds), seed=0)
     assert res.status == "ok", res.message

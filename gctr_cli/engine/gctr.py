@@ -368,7 +368,8 @@ def settle_at_bound(T_n: np.ndarray, refinement: tuple[RefinementCloud, Refineme
     the caller).
     Otherwise the unbounded refinement is the answer when the verdict's tight test scores it at least
     as well (and ``refine.enabled``): a true scale on a bound (10 for a cm/mm pair) or just beyond came
-    back held a step inside it and turned 3-5°. The refinement's time is booked under ``refine``.
+    back held a step inside it and turned 3-5° (before the refinement held the scale at the bound). The
+    refinement's time is booked under ``refine``.
     """
     lo, hi = cfg.scale_bounds
     scale = similarity_scale(T_n) / ratio
