@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
-from gctr_cli.engine.similarity import umeyama
+from gctr_cli.engine.similarity import similarity_with_scale, umeyama
 from gctr_cli.engine.verdict import surface_matches
 from gctr_cli.geometry import apply, cross, to_matrix
 
@@ -55,9 +55,8 @@ def trimmed_scaled_icp(src: np.ndarray, tgt: np.ndarray, T0: np.ndarray, iterati
         s, R, t = umeyama(src[keep], tgt[j[keep]])
         if not scale_bounds[0] <= s <= scale_bounds[1]:
             # the best similarity at the bound: Umeyama's rotation does not depend on the scale
-            s_held = float(np.clip(s, *scale_bounds))
-            t = tgt[j[keep]].mean(axis=0) - s_held * R @ src[keep].mean(axis=0)
-            s = s_held
+            s = float(np.clip(s, *scale_bounds))
+            t = similarity_with_scale(src[keep], tgt[j[keep]], s, R)
         T_new = to_matrix(s, R, t)
         change = np.linalg.norm(T_new - T)
         T = T_new
