@@ -840,12 +840,14 @@ def test_point_to_plane_icp_refines_perturbed_transform(seed):
     np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
 
 
-@pytest.mark.parametrize("method", ["point_to_plane", "point_to_point"])
-def test_icp_holds_the_scale_at_a_bound_and_still_refines_the_pose(method):
-    """A pair whose ICP optimum lies 1% beyond the upper scale bound (as a rigid pair's free refinement
-    ends 1.5-4% low on noisy clouds, under rigid.yaml's [0.99, 1.01]): the ICP stopped before the first step
-    that crossed the bound (point-to-plane did not move from the start, 3° off; point-to-point stopped 0.6%
-    inside the bound, 2.6° off); now it goes on with the scale held at the bound."""
+@pytest.mark.parametrize("method", ["point_to_plane", "two_way", "point_to_point"])
+@pytest.mark.parametrize("end", ["upper", "lower"])
+def test_icp_holds_the_scale_at_a_bound_and_still_refines_the_pose(method, end):
+    """A pair whose ICP optimum lies 1% beyond a scale bound (as a rigid pair's free refinement ends 1.5-4%
+    low on noisy clouds, under rigid.yaml's [0.99, 1.01]): the ICP stopped before the first step that
+    crossed the bound (at the upper end, point-to-plane did not move from the start, 3° off; point-to-point
+    stopped 0.6% inside the bound, 2.6° off); now it goes on with the scale held at the bound. ``two_way``
+    is the engine's form (source normals, matches both ways, a subset of 2000 points)."""
     rng = np.random.default_rng(2)
     src, _ = bunny_working(2)
     s, R, t = random_similarity(rng, (0.5, 2.0))
@@ -854,14 +856,17 @@ def test_icp_holds_the_scale_at_a_bound_and_still_refines_the_pose(method):
     tgt = apply(T_gt, sub) + rng.normal(scale=0.001 * s, size=sub.shape)
     axis = rng.normal(size=3)
     dR = Rotation.from_rotvec(np.radians(3.0) * axis / np.linalg.norm(axis)).as_matrix()
-    T0 = to_matrix(0.97 * s, R @ dR, t)
-    bounds = (0.1, 0.99 * s)
-    if method == "point_to_plane":
-        T, _ = scaled_point_to_plane_icp(src, tgt, estimate_normals(tgt, 16), T0, 30, 0.08 * s, 0.02 * s, bounds)
-    else:
+    held = 0.99 * s if end == "upper" else 1.01 * s
+    T0 = to_matrix((0.97 if end == "upper" else 1.03) * s, R @ dR, t)
+    bounds = (0.1, held) if end == "upper" else (held, 10.0)
+    if method == "point_to_point":
         T, _ = trimmed_scaled_icp(src, tgt, T0, 30, 0.08 * s, 0.02 * s, bounds)
+    else:
+        two_way = {"src_normals": estimate_normals(src, 16), "symmetric": True, "max_matches": 2000}
+        T, _ = scaled_point_to_plane_icp(src, tgt, estimate_normals(tgt, 16), T0, 30, 0.08 * s, 0.02 * s, bounds,
+                                         **(two_way if method == "two_way" else {}))
     e = transform_errors(T, T_gt, float(np.linalg.norm(np.ptp(tgt, axis=0))))
-    assert split(T)[0] == pytest.approx(0.99 * s, rel=1e-9)  # held at the bound, not beyond
+    assert split(T)[0] == pytest.approx(held, rel=1e-9)  # held at the bound, not beyond
     assert e.rot_err_deg < 0.5, e
     assert e.trans_err_rel < 0.01, e
 
