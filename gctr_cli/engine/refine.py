@@ -157,6 +157,8 @@ def scaled_point_to_plane_icp(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.
                 x = np.r_[np.linalg.solve(A[:6, :6] + 1e-9 * np.eye(6), b[:6] - A[:6, 6] * ds), ds]
         except np.linalg.LinAlgError:
             break
+        if not np.isfinite(x).all():  # (the bound check stopped a non-finite step before)
+            break
         step = _small_similarity(x)
         C = np.eye(4)
         C[:3, 3] = centre
