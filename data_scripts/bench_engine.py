@@ -121,7 +121,8 @@ BASE_COLUMNS = [
 #: the verdict's inputs (``RegistrationResult.evidence``): what a change to the confidence is studied on
 EVIDENCE_COLUMNS = ["score", "rival_score", "source_agreement", "target_agreement", "source_conflict",
                     "target_conflict", "support", "relief_confidence", "mirror_score",
-                    "mirror_confidence", "mirror_ok", "reflection_lead"]
+                    "mirror_confidence", "mirror_ok", "reflection_lead", "polish_end", "polished", "polish_fine",
+                    "polish_coarse"]
 MEMORY_COLUMNS = ["rss_baseline_mb", "peak_rss_mb", "rss_increment_mb", "ru_maxrss_mb", "load_avg_1m"]
 SECTION_BEGIN = "<!-- bench-section: {} -->"
 SECTION_END = "<!-- /bench-section -->"

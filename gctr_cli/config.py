@@ -155,6 +155,22 @@ class RefineConfig(_Strict):
     max_points: int = Field(12000, ge=100, description="working size of each refinement cloud")
 
 
+class PolishConfig(_Strict):
+    """The answer's last ICP on finer clouds than the verdict's, down to a trimming distance set by the
+    clouds' own noise (gctr_cli.engine.polish): on clouds with little noise the verdict's working clouds
+    leave errors of a few degrees that the data can resolve. It never changes which alignment is chosen."""
+
+    enabled: bool = True
+    voxel_ratio: float = Field(0.0025, gt=0, lt=0.5, description="voxel size of the polish clouds / robust diameter")
+    max_points: int = Field(15000, ge=100, description="working size of each polish cloud")
+    iterations: int = Field(15, ge=1, le=500, description="ICP iterations (trimming shrinks geometrically)")
+    end_ratio: float = Field(0.005, gt=0, description="final trimming distance / robust diameter of the smaller cloud")
+    noise_factor: float = Field(
+        3.0, ge=0, description="... at least this times the clouds' combined noise (25th-percentile roughness); no "
+                               "polish where that is not below the refinement's end distance (noisy clouds)")
+    max_matches: int = Field(3000, ge=0, description="points of each cloud moved and matched per iteration; 0 = all")
+
+
 class VerdictConfig(_Strict):
     """How candidates are ranked and how sure the engine is (see gctr_cli.engine.verdict)."""
 
@@ -247,6 +263,7 @@ class EngineConfig(_Strict):
     ransac: RansacConfig = RansacConfig()
     outer: OuterLoopConfig = OuterLoopConfig()
     refine: RefineConfig = RefineConfig()
+    polish: PolishConfig = PolishConfig()
     verdict: VerdictConfig = VerdictConfig()
     overlap: Literal["auto"] | float = Field(
         "auto", description="'auto' searches overlap_candidates, largest first, then part_regions")

@@ -34,6 +34,10 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    with agreeing normals, both directions) at tight tolerances; the best is the answer, and the
    confidence is its lead over the best distinct rival (an answer short of confidence 1 is also tried
    slid both ways along the direction its surface contact leaves free, refined, and the choice made again);
+5b. the answer's polish (:mod:`~gctr_cli.engine.polish`, ``engine.polish``): the same ICP once more on
+   finer clouds, down to a trimming distance set by the clouds' own noise, kept only when it stays the
+   same alignment: the verdict says which alignment, the polish makes it as precise as the data allow
+   (skipped on clouds whose noise is as large as the verdict's tolerance);
 6. the transform is composed back into the original coordinates and checked (inliers, fitness,
    scale bounds, confidence ≥ ``min_confidence``) — weak or ambiguous evidence gives
    ``status='failed'`` with a message rather than a silently wrong matrix; an answer below
@@ -41,7 +45,7 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    ``verdict.mirror_below`` must fit better than the source's mirror image (:func:`mirror_config`).
 
 Stages 1-2 for each cloud are in :mod:`~gctr_cli.engine.prepare`. All random draws come from
-generators spawned from ``seed``.
+generators spawned from ``seed`` (the polish's from ``seed`` and :data:`POLISH_STREAM`).
 """
 
 from __future__ import annotations
@@ -65,6 +69,7 @@ from gctr_cli.engine.decide import (
     truncated,
 )
 from gctr_cli.engine.halves import half_candidates
+from gctr_cli.engine.polish import polish
 from gctr_cli.engine.prepare import PreparedCloud, RefinementCloud, StageTimer, prepare_cloud
 from gctr_cli.engine.preprocess import DegenerateCloudError, NormalisedCloud, denormalise, normalise, validate_cloud
 from gctr_cli.engine.refine import evaluate_fit
@@ -121,6 +126,9 @@ def run_search(source: np.ndarray, target: np.ndarray, cfg: EngineConfig, seed: 
     return SearchRun(ns, nt, src, tgt, bounds_n, candidates, rng_refine, tensors)
 
 
+#: the polish's own random stream (its clouds' subsets), apart from the pair's spawned generators so that
+#: turning the polish on or off leaves every other draw as it was
+POLISH_STREAM = 0x706F6C
 #: an answer within this factor of a finite ``scale_bounds`` end is checked by :func:`settle_at_bound`
 NEAR_BOUND = 1.25
 #: how far beyond a bound the unbounded refinement may end before the answer counts as held there
@@ -263,6 +271,10 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size  # normalised scale per original scale
     T_n, held, free = settle_at_bound(T_n, refinement, cfg, ratio, timer) if refinement else (T_n, "", float("nan"))
+    polished: dict[str, float] = {}
+    if confirm and not held:  # the checks' own runs need no polish; a held answer is refused
+        T_n, polished = polish(T_n, ns.points, nt.points, cfg, bounds_n, np.random.default_rng([seed, POLISH_STREAM]),
+                               timer)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.
     best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
@@ -333,7 +345,7 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
                   "source_agreement": verdict.agreement.source, "target_agreement": verdict.agreement.target,
                   "source_conflict": verdict.agreement.conflict_source,
                   "target_conflict": verdict.agreement.conflict_target, "support": verdict.support,
-                  "relief_confidence": verdict.relief_confidence, **mirror},
+                  "relief_confidence": verdict.relief_confidence, **mirror, **polished},
         refusal=refusal,
     )
 
