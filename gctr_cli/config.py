@@ -162,13 +162,16 @@ class PolishConfig(_Strict):
 
     enabled: bool = True
     voxel_ratio: float = Field(0.0025, gt=0, lt=0.5, description="voxel size of the polish clouds / robust diameter")
-    max_points: int = Field(15000, ge=100, description="working size of each polish cloud")
+    max_points: int = Field(15000, ge=100, description="size of each polish cloud, on which the noise is measured")
+    icp_points: int = Field(6000, ge=100, description="points of each polish cloud the ICP runs on (a seeded subset)")
     iterations: int = Field(15, ge=1, le=500, description="ICP iterations (trimming shrinks geometrically)")
     end_ratio: float = Field(0.005, gt=0, description="final trimming distance / robust diameter of the smaller cloud")
     noise_factor: float = Field(
-        3.0, ge=0, description="... at least this times the clouds' combined noise (25th-percentile roughness); no "
-                               "polish where that is not below the refinement's end distance (noisy clouds)")
-    max_matches: int = Field(3000, ge=0, description="points of each cloud moved and matched per iteration; 0 = all")
+        3.0, ge=0, description="... at least this times the clouds' combined noise (25th-percentile roughness)")
+    max_end_share: float = Field(
+        0.5, gt=0, le=1, description="runs only where that final distance is at most this share of the refinement's "
+                                     "end distance (refine.end_ratio): not on noisy clouds")
+    max_matches: int = Field(1500, ge=0, description="points of each cloud moved and matched per iteration; 0 = all")
 
 
 class VerdictConfig(_Strict):

@@ -27,7 +27,7 @@ from gctr_cli.engine.scipy_parts import cKDTree
 from gctr_cli.engine.verdict import Surface, displacement, surface_agreement
 
 #: points of each polish cloud scored for the keep-or-not test (a strided sample, as the verdict's)
-POLISH_SAMPLE_POINTS = 3000
+POLISH_SAMPLE_POINTS = 1500
 
 
 #: the roughness percentile read as the cloud's noise (the flattest quarter of its neighbourhoods: the
@@ -52,9 +52,14 @@ def polish_points(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     return pts, tree, float(np.percentile(np.sqrt(np.maximum(smallest, 0.0)), NOISE_PERCENTILE))
 
 
-def polish_cloud(pts: np.ndarray, tree: cKDTree, noise: float, cfg: EngineConfig) -> RefinementCloud:
-    """The polish cloud of :func:`polish_points`' output: normals as the working clouds' and a strided sample
-    of :data:`POLISH_SAMPLE_POINTS` for the keep-or-not test (``roughness`` holds the noise)."""
+def polish_cloud(pts: np.ndarray, tree: cKDTree, noise: float, cfg: EngineConfig,
+                 rng: np.random.Generator) -> RefinementCloud:
+    """The ICP cloud of :func:`polish_points`' output: at most ``polish.icp_points`` of its points (a seeded
+    subset), normals as the working clouds', a strided sample of :data:`POLISH_SAMPLE_POINTS` for the
+    keep-or-not test, and ``roughness`` = the noise."""
+    if len(pts) > cfg.polish.icp_points:
+        pts = pts[np.sort(rng.choice(len(pts), cfg.polish.icp_points, replace=False))]
+        tree = cKDTree(pts)
     k = min(cfg.preprocess.normal_neighbours, len(pts))
     normals, _ = normals_and_roughness(pts, nearest_neighbours(pts, k, tree)[1])
     return RefinementCloud(pts, normals, tree, Surface.build(pts, normals, tree, POLISH_SAMPLE_POINTS, 0.0), noise)
@@ -83,9 +88,9 @@ def polish(T_n: np.ndarray, source: np.ndarray, target: np.ndarray, cfg: EngineC
         start = cfg.refine.end_ratio * size
         end = max(p.end_ratio * size, p.noise_factor * noise)
         info["polish_end"] = end / size
-        if not end < start:
+        if not end <= p.max_end_share * start:
             return T_n, info
-        src_f, tgt_f = polish_cloud(*src_pts, cfg), polish_cloud(*tgt_pts, cfg)
+        src_f, tgt_f = polish_cloud(*src_pts, cfg, rng), polish_cloud(*tgt_pts, cfg, rng)
         T_p = scaled_point_to_plane_icp(src_f.points, tgt_f.points, tgt_f.normals, T_n, p.iterations, start, end,
                                         bounds_n, tgt_f.tree, src_normals=src_f.normals,
                                         max_normal_angle_deg=v.max_normal_angle_deg, src_tree=src_f.tree,
