@@ -109,7 +109,7 @@ QUICK_PAIRS = 3
 
 # Stages reported by gctr_cli.engine.gctr (in pipeline order); unknown stages are appended, sorted.
 KNOWN_STAGES = ("preprocess", "supervoxels", "triplets", "tensor", "power_iteration", "ransac", "verify",
-                "similarity", "scoring", "refine")
+                "similarity", "scoring", "refine", "polish")
 
 BASE_COLUMNS = [
     "pair_id", "level", "model", "n_source", "n_target", "seed", "status", "success",
@@ -118,11 +118,12 @@ BASE_COLUMNS = [
     "outcome", "refusal", "confidence", "would_succeed", "score_truth", "score_answer", "diagnosis",
     "time_s", "cpu_s", "load_s",
 ]
-#: the verdict's inputs (``RegistrationResult.evidence``): what a change to the confidence is studied on
+#: the verdict's inputs and the polish's view (``RegistrationResult.evidence``; NaN where a run has none: the
+#: polish runs on accepted answers only, its agreements only when the noise gate lets it)
 EVIDENCE_COLUMNS = ["score", "rival_score", "source_agreement", "target_agreement", "source_conflict",
                     "target_conflict", "support", "relief_confidence", "mirror_score",
-                    "mirror_confidence", "mirror_ok", "reflection_lead", "polish_end", "polished", "polish_fine",
-                    "polish_coarse"]
+                    "mirror_confidence", "mirror_ok", "reflection_lead", "polish_end", "polished", "polish_before",
+                    "polish_fine"]
 MEMORY_COLUMNS = ["rss_baseline_mb", "peak_rss_mb", "rss_increment_mb", "ru_maxrss_mb", "load_avg_1m"]
 SECTION_BEGIN = "<!-- bench-section: {} -->"
 SECTION_END = "<!-- /bench-section -->"

@@ -603,3 +603,28 @@ def test_the_rigid_config_registers_scans_of_one_scanner_and_refuses_another_sca
     assert weak.status == "failed" and weak.message.startswith(("low confidence", "ambiguous")), weak.message
     assert "; refined with a free scale, the alignment moves to scale " in weak.message
     assert weak.refusal == "scale_held"  # no threshold accepts it
+
+
+def test_the_polish_changes_the_precision_of_an_accepted_answer_and_nothing_else():
+    """Two shipped raw bunny scans (bun315 onto bun000, little noise): the polish (stage 5b) runs on the
+    accepted answer, after every check. Status, confidence and the verdict's evidence are those without it;
+    the returned transform is at least as close to the truth."""
+    from data_scripts.common import read_pose_file
+
+    scans = MODELS.parent / "scans"
+    poses = read_pose_file(scans / "poses.txt")
+    src, tgt = load_point_cloud(scans / "bun315.ply"), load_point_cloud(scans / "bun000.ply")
+    gt = np.linalg.inv(poses["bun000"]) @ poses["bun315"]
+    on = register(src, tgt, EngineConfig(), seed=0)
+    off = register(src, tgt, EngineConfig.model_validate({"polish": {"enabled": False}}), seed=0)
+    assert on.status == off.status == "ok"
+    assert on.confidence == off.confidence
+    assert on.evidence["score"] == off.evidence["score"]
+    assert on.evidence["polish_end"] <= 0.5 * EngineConfig().refine.end_ratio  # low noise: it ran
+    assert off.evidence["polished"] == 0.0 and off.evidence["polish_end"] == 0.0  # off: not run
+    error = {name: transform_errors(r.transform, gt, bbox_diagonal(tgt), src.mean(axis=0)) for name, r in
+             (("on", on), ("off", off))}
+    assert error["on"].rot_err_deg <= error["off"].rot_err_deg + 0.01, error
+    assert error["on"].rot_err_deg < 0.3, error
+    assert (on.evidence["polished"] == 1.0) == (not np.array_equal(on.transform, off.transform))
+    assert on.timings["polish"] > 0 and "polish" not in off.timings

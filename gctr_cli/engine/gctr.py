@@ -34,10 +34,10 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    with agreeing normals, both directions) at tight tolerances; the best is the answer, and the
    confidence is its lead over the best distinct rival (an answer short of confidence 1 is also tried
    slid both ways along the direction its surface contact leaves free, refined, and the choice made again);
-5b. the answer's polish (:mod:`~gctr_cli.engine.polish`, ``engine.polish``): the same ICP once more on
-   finer clouds, down to a trimming distance set by the clouds' own noise, kept only when it stays the
-   same alignment: the verdict says which alignment, the polish makes it as precise as the data allow
-   (skipped on clouds whose noise is as large as the verdict's tolerance);
+5b. an accepted answer's polish (:mod:`~gctr_cli.engine.polish`, ``engine.polish``), after every check of 6:
+   the same ICP once more, trimmed down to a distance set by the clouds' own noise, kept only when it stays
+   the same alignment: the verdict says which alignment, the polish makes it as precise as the data allow
+   (run only where the noise lets the trimming go to at most half the refinement's end distance);
 6. the transform is composed back into the original coordinates and checked (inliers, fitness,
    scale bounds, confidence ≥ ``min_confidence``) — weak or ambiguous evidence gives
    ``status='failed'`` with a message rather than a silently wrong matrix; an answer below
@@ -271,10 +271,6 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size  # normalised scale per original scale
     T_n, held, free = settle_at_bound(T_n, refinement, cfg, ratio, timer) if refinement else (T_n, "", float("nan"))
-    polished: dict[str, float] = {}
-    if confirm and not held:  # the checks' own runs need no polish; a held answer is refused
-        T_n, polished = polish(T_n, ns.points, nt.points, cfg, bounds_n, np.random.default_rng([seed, POLISH_STREAM]),
-                               timer)
     fit = evaluate_fit(src.points, tgt.tree, T_n, cfg.inlier_distance_ratio)
     # The search run that found the answer (the nearest candidate) reports inliers and overlap.
     best = min(candidates, key=lambda c: displacement(T_n, c.transform, src.surface.sample))
@@ -336,6 +332,15 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
             status, refusal, message = "failed", "mirrored", (
                 f"mirrored: the source reflected (x -> -x) fits the target better than any rotation of it (score "
                 f"{mirror['mirror_score']:.2f} against {verdict.score:.2f}){MIRROR_ADVICE}")
+    polished: dict[str, float] = {}
+    if status == "ok" and confirm:
+        # Stage 5b, after every check (they judge the verdict's alignment): precision only, on accepted answers.
+        T_p, polished = polish(T_n, ns.points, nt.points, cfg, bounds_n, np.random.default_rng([seed, POLISH_STREAM]),
+                               timer)
+        if polished["polished"]:
+            fit = evaluate_fit(src.points, tgt.tree, T_p, cfg.inlier_distance_ratio)
+            T = denormalise(T_p, ns, nt)
+            scale, rotation, translation = split(T)
     return RegistrationResult(
         transform=T, scale=scale, rotation=rotation, translation=translation, fitness=fit.fitness,
         inlier_rmse=fit.rmse * nt.size, n_inliers=best.n_inliers, iterations=best.iterations, status=status,

@@ -39,7 +39,10 @@ class RegistrationResult:
     ``overlap`` the overlap hypothesis it ran with (0.25 ... 1.0, or a part-region share). ``runtime_s``
     is the engine's wall time and ``timings`` its seconds per stage; ``evidence`` holds the verdict's
     inputs (its score, the best rival's score, agreement and conflict shares, support, relief
-    confidence); ``seed`` is the seed the draws came from; ``ok`` is ``status == "ok"``.
+    confidence: of the verdict's transform, before the polish of stage 5b) and the polish's view
+    (``polish_end``, ``polished``, ``polish_before``, ``polish_fine``: :func:`~gctr_cli.engine.polish.polish`;
+    absent when the answer was refused); ``fitness`` and ``inlier_rmse`` describe the returned transform;
+    ``seed`` is the seed the draws came from; ``ok`` is ``status == "ok"``.
 
     ``refusal`` says why a failed result was refused, one of :data:`REFUSALS` (``""`` when ok, and for
     the comparison methods): ``low_confidence`` (below ``min_confidence``, ambiguous pairs included) is
