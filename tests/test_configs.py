@@ -25,22 +25,27 @@ def test_fast_is_lighter_and_accurate_heavier_than_default():
     assert f.ransac.iterations < d.ransac.iterations < a.ransac.iterations
 
 
-def test_scene_config_only_raises_the_threshold():
-    """configs/scene.yaml is the defaults with the threshold measured for sensor-like scene noise."""
+def test_scene_config_only_raises_the_threshold_and_polishes():
+    """configs/scene.yaml is the defaults with the threshold measured for sensor-like scene noise and the
+    answer's polish (stage 5b) on."""
     scene = load_config(CONFIGS / "scene.yaml")
     assert scene.engine.min_confidence == 0.45 > Config().engine.min_confidence
     default = Config()
-    same_threshold = scene.engine.model_copy(update={"min_confidence": default.engine.min_confidence})
-    assert scene.model_copy(update={"engine": same_threshold}) == default
+    assert scene.engine.polish.enabled and not default.engine.polish.enabled
+    same = scene.engine.model_copy(update={"min_confidence": default.engine.min_confidence,
+                                           "polish": default.engine.polish})
+    assert scene.model_copy(update={"engine": same}) == default
 
 
 def test_rigid_config_only_holds_the_scale_near_one():
     """configs/rigid.yaml is the defaults with scale_bounds [0.99, 1.01] (docs/config.md's advice for a
-    pair known to be rigid)."""
+    pair known to be rigid) and the answer's polish."""
     rigid = load_config(CONFIGS / "rigid.yaml")
     assert rigid.engine.scale_bounds == (0.99, 1.01)
     default = Config()
-    wide = rigid.engine.model_copy(update={"scale_bounds": default.engine.scale_bounds})
+    assert rigid.engine.polish.enabled  # and the answer's polish (stage 5b), for scans with little noise
+    wide = rigid.engine.model_copy(update={"scale_bounds": default.engine.scale_bounds,
+                                           "polish": default.engine.polish})
     assert rigid.model_copy(update={"engine": wide}) == default
 
 

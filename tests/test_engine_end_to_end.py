@@ -615,8 +615,9 @@ def test_the_polish_changes_the_precision_of_an_accepted_answer_and_nothing_else
     poses = read_pose_file(scans / "poses.txt")
     src, tgt = load_point_cloud(scans / "bun315.ply"), load_point_cloud(scans / "bun000.ply")
     gt = np.linalg.inv(poses["bun000"]) @ poses["bun315"]
-    on = register(src, tgt, EngineConfig(), seed=0)
-    off = register(src, tgt, EngineConfig.model_validate({"polish": {"enabled": False}}), seed=0)
+    on = register(src, tgt, EngineConfig.model_validate({"polish": {"enabled": True}}), seed=0)
+    off = register(src, tgt, EngineConfig(), seed=0)  # off by default
+    assert not EngineConfig().polish.enabled
     assert on.status == off.status == "ok"
     assert on.confidence == off.confidence
     assert on.evidence["score"] == off.evidence["score"]

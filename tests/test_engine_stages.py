@@ -1112,8 +1112,7 @@ def test_polish_pulls_a_near_miss_in_on_clouds_with_little_noise():
     from gctr_cli.engine.polish import polish
     from gctr_cli.engine.prepare import StageTimer
 
-    cfg = EngineConfig()
-    assert cfg.polish.enabled  # on by default
+    cfg = EngineConfig.model_validate({"polish": {"enabled": True}})  # off by default; on in scene.yaml, rigid.yaml
     source, target, T_gt = _low_noise_room_pair(0.0003)
     assert split(T_gt)[0] < 1.0  # the half room, normalised, is larger than its share of the room
     T0 = _near_miss(T_gt, source, 1.5)
@@ -1151,7 +1150,7 @@ def test_polish_keeps_the_answer_when_it_would_move_to_another_alignment():
     T0 = _near_miss(T_gt, source, 25.0)
     assert 0.05 < displacement(T0, T_gt, source) < 0.1
     for distinct, reaches in ((0.1, True), (0.05, False)):
-        cfg = EngineConfig.model_validate({"verdict": {"distinct_ratio": distinct}})
+        cfg = EngineConfig.model_validate({"verdict": {"distinct_ratio": distinct}, "polish": {"enabled": True}})
         T, info = polish(T0, source, target, cfg, (0.01, 100.0), np.random.default_rng(0), StageTimer({}))
         if reaches:
             assert transform_errors(T, T_gt, 1.0).rot_err_deg < 0.1

@@ -34,7 +34,8 @@ Pipeline (paper, Algorithm 1, with the extensions measured in bench/ENGINE.md):
    with agreeing normals, both directions) at tight tolerances; the best is the answer, and the
    confidence is its lead over the best distinct rival (an answer short of confidence 1 is also tried
    slid both ways along the direction its surface contact leaves free, refined, and the choice made again);
-5b. an accepted answer's polish (:mod:`~gctr_cli.engine.polish`, ``engine.polish``), after every check of 6:
+5b. an accepted answer's polish (:mod:`~gctr_cli.engine.polish`, ``engine.polish``, off by default, on in
+   ``configs/scene.yaml`` and ``configs/rigid.yaml``), after every check of 6:
    the same ICP once more, trimmed down to a distance set by the clouds' own noise, kept only when it stays
    the same alignment: the verdict says which alignment, the polish makes it as precise as the data allow
    (run only where the noise lets the trimming go to at most half the refinement's end distance);
