@@ -28,15 +28,13 @@ import numpy as np
 from gctr_cli.config import EngineConfig
 from gctr_cli.engine.decide import similarity_scale, smaller_cloud
 from gctr_cli.engine.prepare import RefinementCloud, StageTimer
-from gctr_cli.engine.preprocess import downsample_to, nearest_neighbours, normals_and_roughness
+from gctr_cli.engine.preprocess import downsample_to, nearest_neighbours, normals_and_roughness, smallest_eigenpairs
 from gctr_cli.engine.refine import scaled_point_to_plane_icp
 from gctr_cli.engine.scipy_parts import cKDTree
 from gctr_cli.engine.verdict import Surface, displacement, surface_agreement
 
 #: points of each polish cloud scored for the keep-or-not test (a strided sample, unweighted)
 POLISH_SAMPLE_POINTS = 1500
-
-
 #: the roughness percentile read as the cloud's noise (the flattest quarter of its neighbourhoods: the
 #: median on a LiDAR window is vegetation and edges, ten times the sensor noise)
 NOISE_PERCENTILE = 25.0
@@ -55,7 +53,8 @@ def polish_points(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     _, idx = tree.query(pts[::max(1, len(pts) // NOISE_SAMPLE_POINTS)], k)
     neighbours = pts[idx.reshape(len(idx), -1)]
     centred = neighbours - neighbours.mean(axis=1, keepdims=True)
-    smallest = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", centred, centred) / k)[:, 0]
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    smallest, _ = smallest_eigenpairs(cov[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]])  # the working clouds' solver
     return pts, tree, float(np.percentile(np.sqrt(np.maximum(smallest, 0.0)), NOISE_PERCENTILE))
 
 
