@@ -159,8 +159,8 @@ class PolishConfig(_Strict):
     """The answer's last ICP on finer clouds than the verdict's, down to a trimming distance set by the
     clouds' own noise (gctr_cli.engine.polish): on clouds with little noise the verdict's working clouds
     leave errors of a few degrees that the data can resolve. It never changes which alignment is chosen. Off by
-    default (it costs about 0.05 s a pair even where its noise gate skips it, and the speed goal of issue 10
-    has no room for that); on in configs/scene.yaml and configs/rigid.yaml."""
+    default (it costs about 0.015 s a pair even where its noise gate skips it, 0.1-0.25 s where it runs, and the
+    speed goal of issue 10 has little room for that); on in configs/scene.yaml and configs/rigid.yaml."""
 
     enabled: bool = False
     voxel_ratio: float = Field(0.0025, gt=0, lt=0.5, description="voxel size of the polish clouds / robust diameter")

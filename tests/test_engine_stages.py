@@ -1138,6 +1138,32 @@ def test_polish_pulls_a_near_miss_in_on_clouds_with_little_noise():
     assert info["polish_end"] > cfg.polish.max_end_share * cfg.refine.end_ratio
 
 
+def test_polish_measures_the_target_noise_only_when_the_source_leaves_the_gate_open(monkeypatch):
+    """The combined noise is at least the source's, so a noisy source closes the gate before the target's noise
+    is measured (half the cost of a skipped polish); a clean source with a noisy target needs both, and still
+    skips. The decision is the same either way."""
+    import gctr_cli.engine.polish as polish_module
+    from gctr_cli.engine.prepare import StageTimer
+
+    measured: list[int] = []
+    real = polish_module.polish_points
+    monkeypatch.setattr(polish_module, "polish_points",
+                        lambda points, *a: measured.append(len(points)) or real(points, *a))
+    cfg = EngineConfig.model_validate({"polish": {"enabled": True}})
+    clean_source, clean_target, T_gt = _low_noise_room_pair(0.0003)
+    noisy_source, noisy_target, _ = _low_noise_room_pair(0.005)
+    T0 = _near_miss(T_gt, clean_source, 1.5)
+    gate = cfg.polish.max_end_share * cfg.refine.end_ratio
+    for source, target, calls in ((noisy_source, clean_target, 1), (clean_source, noisy_target, 2)):
+        measured.clear()
+        T, info = polish_module.polish(T0, source, target, cfg, (0.01, 100.0), np.random.default_rng(0),
+                                       StageTimer({}))
+        np.testing.assert_array_equal(T, T0)
+        assert info["polished"] == 0.0 and "polish_fine" not in info
+        assert info["polish_end"] > gate
+        assert measured == [len(source), len(target)][:calls]
+
+
 def test_polish_keeps_the_answer_when_it_would_move_to_another_alignment():
     """The polish refines an alignment and never replaces it. From 25° off its ICP reaches the truth, moving
     the source by 0.092: kept under the default verdict.distinct_ratio 0.1, but with a distinct ratio of 0.05

@@ -11,7 +11,8 @@ trimming distance shrinking from where the refinement ended to the larger of ``p
 ``polish.noise_factor`` times the clouds' combined noise (the flattest quarter of about 1,000
 neighbourhoods of each cloud). It runs only where that final distance is at most ``polish.max_end_share``
 of the refinement's, for time: on noisier clouds (the benchmark's generated levels with added noise) it
-costs only the noise estimate, about 0.03 s. It is skipped when ``refine.enabled`` is false or
+costs only the noise estimate, about 0.015 s (the source's: where that alone closes the gate, the target's
+is not measured). It is skipped when ``refine.enabled`` is false or
 ``refine.method`` is point_to_point. The polished transform is kept only when it stays the same alignment
 (moves the source by at most ``verdict.distinct_ratio``, normalised target units, as every "distinct" test)
 and its surface agreement at the polish's final distance does not drop. The engine calls it on accepted
@@ -53,7 +54,7 @@ def polish_points(points: np.ndarray, cfg: EngineConfig, rng: np.random.Generato
     _, idx = tree.query(pts[::max(1, len(pts) // NOISE_SAMPLE_POINTS)], k)
     neighbours = pts[idx.reshape(len(idx), -1)]
     centred = neighbours - neighbours.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    cov = np.matmul(centred.transpose(0, 2, 1), centred) / k  # a batched product: 2.5x faster than einsum here
     smallest, _ = smallest_eigenpairs(cov[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]])  # the working clouds' solver
     return pts, tree, float(np.percentile(np.sqrt(np.maximum(smallest, 0.0)), NOISE_PERCENTILE))
 
@@ -78,9 +79,10 @@ def polish(T_n: np.ndarray, source: np.ndarray, target: np.ndarray, cfg: EngineC
     ``source`` and ``target``: ``T_n`` itself when the polish is off, would not go finer than the
     refinement, moves to another alignment or lowers the fine surface agreement. Also returns what the
     polish saw (the result's ``evidence``): ``polish_end`` (its final trimming distance / the smaller cloud's
-    size; 0 when the stage is off), ``polished`` (1 when the result is the polished transform, 0 otherwise,
-    also when the noise gate skipped it), and when its ICP ran ``polish_before`` and ``polish_fine`` (the
-    surface agreement at the final distance of the given and of the returned transform)."""
+    size; 0 when the stage is off; where the source's noise alone closes the gate, the target's is not
+    measured and this is the source's share, a lower bound), ``polished`` (1 when the result is the polished
+    transform, 0 otherwise, also when the noise gate skipped it), and when its ICP ran ``polish_before`` and
+    ``polish_fine`` (the surface agreement at the final distance of the given and of the returned transform)."""
     p, v = cfg.polish, cfg.verdict
     info = {"polish_end": 0.0, "polished": 0.0}
     if not (p.enabled and cfg.refine.enabled and cfg.refine.method == "point_to_plane"):
@@ -89,9 +91,16 @@ def polish(T_n: np.ndarray, source: np.ndarray, target: np.ndarray, cfg: EngineC
     try:
         scale = similarity_scale(T_n)
         size = smaller_cloud(scale)
-        src_pts, tgt_pts = polish_points(source, cfg, rng), polish_points(target, cfg, rng)
-        noise = float(np.hypot(scale * src_pts[2], tgt_pts[2]))
         start = cfg.refine.end_ratio * size
+        src_pts = polish_points(source, cfg, rng)
+        # The combined noise is at least the source's: where that alone closes the gate, the target's noise is
+        # not measured (half the cost of a skipped polish; polish_end is then the source's share, a lower bound).
+        end = max(p.end_ratio * size, p.noise_factor * scale * src_pts[2])
+        info["polish_end"] = end / size
+        if not (np.isfinite(src_pts[2]) and end <= p.max_end_share * start):
+            return T_n, info
+        tgt_pts = polish_points(target, cfg, rng)
+        noise = float(np.hypot(scale * src_pts[2], tgt_pts[2]))
         end = max(p.end_ratio * size, p.noise_factor * noise)
         info["polish_end"] = end / size
         if not (np.isfinite(noise) and end <= p.max_end_share * start):
