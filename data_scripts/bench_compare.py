@@ -257,7 +257,9 @@ def ensure_data(settings: Settings, data: Path) -> list[str]:
     if data.exists():
         shutil.rmtree(data)
     _log(f"generating the pairs: {shlex.join(shown)}")
-    subprocess.run(cmd, cwd=REPO_ROOT, check=True, stdout=subprocess.DEVNULL)
+    done = subprocess.run(cmd, cwd=REPO_ROOT, stdout=subprocess.DEVNULL)
+    if done.returncode != 0:  # its own message (e.g. where the shared data is) is already on stderr
+        raise BenchError(f"generating the pairs into {data} failed (exit status {done.returncode})")
     stamp.write_text(json.dumps(key))
     return shown
 
@@ -1271,7 +1273,11 @@ def main(argv: list[str] | None = None) -> int:
     (work / "results").mkdir(exist_ok=True)
     command = "python -m data_scripts.bench_compare" + (" " + shlex.join(argv) if argv else "")
     with one_core(settings.workers == 1) as pinned_cpu, LoadSampler() as sampler:
-        generate_command = ensure_data(settings, data)
+        try:
+            generate_command = ensure_data(settings, data)
+        except BenchError as err:
+            print(f"bench_compare: error: {err}", file=sys.stderr)
+            return 1
         base_rss = baseline_rss(work)
         try:
             runs, ablation_runs = run_batches(settings, work, data)

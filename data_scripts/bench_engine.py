@@ -403,7 +403,11 @@ def ensure_data(data: Path, seed: int = 0) -> Path:
     cmd = [sys.executable, "-m", "data_scripts.make_benchmark", *GENERATE_ARGS[:1], "--out", str(data),
            *GENERATE_ARGS[1:], "--seed", str(seed)]
     print(f"{manifest} missing; generating: {shlex.join(cmd)}", file=sys.stderr, flush=True)
-    subprocess.run(cmd, cwd=REPO_ROOT, check=True)
+    done = subprocess.run(cmd, cwd=REPO_ROOT)
+    if done.returncode != 0:  # its own message (e.g. where the shared data is) is already on stderr
+        raise BenchError(f"generating {data} failed (exit status {done.returncode}); generate it with "
+                         "`python -m data_scripts.make_benchmark generate --out DIR --seed N [--shared DIR]` and "
+                         "pass --data DIR")
     if not manifest.is_file():
         raise BenchError(f"the generator did not write {manifest}")
     return manifest

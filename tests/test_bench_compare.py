@@ -385,3 +385,15 @@ def test_limits_state_how_firm_a_met_time_goal_is():
         assert ("thin margin" in text) is thin
         assert ("The time goal holds (gctr 0.20 s vs kiss 0.30 s)" in text) is not thin
         assert "How firm the median comparison is: ratio 0.67" in text
+
+
+def test_a_failed_generation_is_a_clear_error_not_a_traceback(monkeypatch, tmp_path):
+    """The generator's own message (e.g. no shared data beside the repository) is followed by one line naming
+    the folder, not a traceback."""
+    import subprocess
+
+    monkeypatch.setattr(bc.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 2))
+    settings = bc.Settings(mode="quick", pairs_per_model=1, seed=0, workers=1, methods=("gctr",),
+                           levels=("easy",), profile_pairs=0)
+    with pytest.raises(bc.BenchError, match=r"generating the pairs into .*data failed \(exit status 2\)"):
+        bc.ensure_data(settings, tmp_path / "w" / "data")

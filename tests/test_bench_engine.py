@@ -317,3 +317,13 @@ def test_stages_before_option_fails_early_on_a_bad_file(tmp_path, capsys):
     bad.write_text("no table\n")
     assert be.main(["--data", str(tmp_path / "nodata"), "--stages-before", str(bad)]) == 2
     assert "no table" in capsys.readouterr().err
+
+
+def test_a_failed_generation_is_a_clear_error_not_a_traceback(monkeypatch, tmp_path):
+    """Without the shared data beside the repository the generator stops with its own usage message; the
+    benchmark then says which folder it could not generate and how to do it by hand (exit status 2)."""
+    monkeypatch.setattr(be.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 2))
+    with pytest.raises(be.BenchError, match=r"generating .*d7 failed \(exit status 2\).*--data DIR"):
+        be.ensure_data(tmp_path / "d7", 7)
+    assert be.main(["--seed", "7", "--data", str(tmp_path / "d7"), "--no-diagnose", "-q",
+                    "--out", str(tmp_path / "x.md")]) == 2
