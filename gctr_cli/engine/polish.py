@@ -92,18 +92,21 @@ def polish(T_n: np.ndarray, source: np.ndarray, target: np.ndarray, cfg: EngineC
         scale = similarity_scale(T_n)
         size = smaller_cloud(scale)
         start = cfg.refine.end_ratio * size
+
+        def gate(noise: float) -> float | None:
+            """The final trimming distance for ``noise`` (recorded as polish_end); None where the gate closes."""
+            end = max(p.end_ratio * size, p.noise_factor * noise)
+            info["polish_end"] = end / size
+            return end if np.isfinite(noise) and end <= p.max_end_share * start else None
+
         src_pts = polish_points(source, cfg, rng)
         # The combined noise is at least the source's: where that alone closes the gate, the target's noise is
         # not measured (half the cost of a skipped polish; polish_end is then the source's share, a lower bound).
-        end = max(p.end_ratio * size, p.noise_factor * scale * src_pts[2])
-        info["polish_end"] = end / size
-        if not (np.isfinite(src_pts[2]) and end <= p.max_end_share * start):
+        if gate(scale * src_pts[2]) is None:
             return T_n, info
         tgt_pts = polish_points(target, cfg, rng)
-        noise = float(np.hypot(scale * src_pts[2], tgt_pts[2]))
-        end = max(p.end_ratio * size, p.noise_factor * noise)
-        info["polish_end"] = end / size
-        if not (np.isfinite(noise) and end <= p.max_end_share * start):
+        end = gate(float(np.hypot(scale * src_pts[2], tgt_pts[2])))
+        if end is None:
             return T_n, info
         src_f, tgt_f = polish_cloud(*src_pts, cfg, rng), polish_cloud(*tgt_pts, cfg, rng)
         T_p = scaled_point_to_plane_icp(src_f.points, tgt_f.points, tgt_f.normals, T_n, p.iterations, start, end,
