@@ -14,6 +14,7 @@ SHARED       ?= ../shared/data
 help:
 	@echo "make demo          set up and run gctr batch on a small cross-source set (results in $(DEMO)/)"
 	@echo "make test          set up and run the test suite"
+	@echo "make setup         only set up: libusb-1.0-0 and .venv with gctr[dev] (tests, benchmarks, dask)"
 	@echo "make test-fast     the test suite without the tests marked slow (pytest -m 'not slow')"
 	@echo "make lint          ruff check (rules in pyproject.toml)"
 	@echo "make typecheck     mypy with the pydantic plugin (packages in pyproject.toml)"

@@ -11,15 +11,18 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import click
 
 from gctr_cli import __version__
 from gctr_cli.fsutil import THREAD_ENV_VARS
+
+if TYPE_CHECKING:  # imported inside the commands at run time (a fast start)
+    from gctr_cli.manifest import PairSpec
 
 logger = logging.getLogger("gctr_cli")
 
@@ -233,6 +236,14 @@ def run() -> None:
         code = 128 + stopped_by
     except SystemExit as exc:
         code = exc.code
+    except OSError as exc:  # --help or --version (printed by click while it parses) to a stdout that fails
+        if not {"-h", "--help", "--version"} & set(sys.argv[1:]):  # the commands' own prints handle it
+            raise
+        _stdout_to_devnull()
+        code = 0
+        if not isinstance(exc, BrokenPipeError):  # `gctr --help | head -1`: the reader just quit
+            click.echo(f"gctr: error: cannot print to standard output ({exc.strerror or exc})", err=True)
+            code = EXIT_USAGE
     if not _ONE_SHOT:
         sys.exit(code)
     if isinstance(code, str):  # sys.exit("message"): print it like the interpreter would
@@ -407,12 +418,14 @@ def _print_report(text: str, only_copy: bool = False) -> None:
 
 
 @contextmanager
-def _stdout_may_fail(what: str, results: Path | None = None, only_copy: bool = False) -> Iterator[None]:
+def _stdout_may_fail(what: str, results: Path | None = None, only_copy: bool = False,
+                     advice: str | None = None) -> Iterator[None]:
     """Printing ``what`` in the block: a stdout that is closed, full or read by a reader that stopped
     early (``gctr register … | head -1``) is not an error of the command, whose files are written: the
     rest is dropped (with a warning unless the reader just quit) and the exit code stays the command's.
     Unless ``only_copy`` (``register`` without ``-o``: the printed matrix is the result): a stdout that
-    cannot be written (full, an I/O error) then exits 2, or a script would take the lost matrix for a success."""
+    cannot be written (full, an I/O error) then exits 2, or a script would take the lost matrix for a success
+    (``advice``: the end of that message when it is not ``register``'s, e.g. for ``config show``)."""
     try:
         yield
         if sys.stdout is not None:  # None: closed (>&-); click.echo then prints nothing
@@ -422,7 +435,9 @@ def _stdout_may_fail(what: str, results: Path | None = None, only_copy: bool = F
         if isinstance(exc, BrokenPipeError):
             return
         if only_copy:
-            _die_unprinted(what, str(exc.strerror or exc))
+            if advice is None:
+                _die_unprinted(what, str(exc.strerror or exc))
+            _die(f"cannot print {what} ({exc.strerror or exc}){advice}")
         where = f"; the results are in {results}" if results is not None else ""
         logger.warning("cannot print %s (%s)%s", what, exc.strerror or exc, where)
 
@@ -797,7 +812,8 @@ def show(source: Path, target: Path, matrix: Path | None, output: Path, max_poin
         from gctr_cli.fsutil import write_error
 
         _die(f"{output}: cannot write file ({write_error(output, exc)})")
-    click.echo(f"wrote {output}")
+    with _stdout_may_fail("the summary line", results=output):
+        click.echo(f"wrote {output}")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -830,11 +846,32 @@ def manifest(source_dir: Path, target_dir: Path, gt_dir: Path | None, output: Pa
     _check_writable(output)
     try:
         pairs = build_manifest(source_dir, target_dir, gt_dir)
+        _check_manifest_output(output, pairs, {"SOURCE_DIR": source_dir, "TARGET_DIR": target_dir, "--gt-dir": gt_dir})
         write_manifest(output, pairs)
     except ManifestError as exc:
         _die(str(exc))
     n_gt = sum(p.gt is not None for p in pairs)
-    click.echo(f"wrote {len(pairs)} pair{'' if len(pairs) == 1 else 's'} ({n_gt} with ground truth) to {output}")
+    with _stdout_may_fail("the summary line", results=output):
+        click.echo(f"wrote {len(pairs)} pair{'' if len(pairs) == 1 else 's'} ({n_gt} with ground truth) to {output}")
+
+
+def _check_manifest_output(output: Path, pairs: Sequence[PairSpec], folders: dict[str, Path | None]) -> None:
+    """Exit 2 when writing the manifest at ``output`` would replace one of its pairs' files (a cloud or a
+    ground truth: ``-o scans/room1.ply`` turned the scan into CSV text) or another file of the input
+    folders that folder pairing reads (a cloud whose stem has no partner, a ground-truth ``.txt``)."""
+    from gctr_cli.manifest import FOLDER_EXTENSIONS
+
+    if not output.exists():
+        return
+    for p in pairs:
+        roles = {f"the source cloud of pair {p.pair_id}": p.source, f"the target cloud of pair {p.pair_id}": p.target,
+                 f"the ground truth of pair {p.pair_id}": p.gt}
+        _check_not_an_input(output, roles)
+    for option, folder in folders.items():
+        if (folder is not None and output.suffix.lower() in FOLDER_EXTENSIONS and folder.is_dir()
+                and os.path.samefile(output.parent, folder)):
+            _die(f"{output}: is an input file in {option} ({folder}); writing the manifest there would replace it: "
+                 "choose another output file (e.g. pairs.csv)")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -913,7 +950,8 @@ def config_show(file: str | None) -> None:
       gctr config show my.yaml   # my.yaml with every default filled in
     """
     config = _load_config(file, runs_here=False)
-    click.echo(commented_yaml(config), nl=False)
+    with _stdout_may_fail("the configuration", only_copy=True, advice=""):  # the printed YAML is the result
+        click.echo(commented_yaml(config), nl=False)
 
 
 @config_group.command("check")
@@ -929,7 +967,8 @@ def config_check(file: str) -> None:
       gctr config check my.yaml
     """
     _load_config(file)
-    click.echo(f"ok: {file}")
+    with _stdout_may_fail(f"'ok: {file}'"):  # the exit code is the check's answer
+        click.echo(f"ok: {file}")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -509,6 +509,12 @@ def load_config(path: str | Path | None) -> Config:
             mark, problem = err.context_mark, f"{err.context}, {err.problem}"
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         raise ConfigError(f"config file {p} is not valid YAML{where}: {problem}") from None
+    except yaml.reader.ReaderError as err:  # a control character (NUL, \x01, ...): no mark, a character offset
+        line = text.count("\n", 0, err.position) + 1
+        column = err.position - (text.rfind("\n", 0, err.position) + 1) + 1
+        char = err.character if isinstance(err.character, str) else chr(err.character)
+        raise ConfigError(f"config file {p} is not valid YAML (line {line}, column {column}): control character "
+                          f"{ord(char):#04x} is not allowed; is it a YAML file?") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"config file {p} is not valid YAML: {err}") from None
     return config_from_dict(data, str(p))

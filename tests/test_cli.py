@@ -142,6 +142,9 @@ def test_config_show_file_and_check(runner, tmp_path):
         ("engine:\n  tensor:\n    knn: 5\n  bad_indent\n",
          ["not valid YAML (line 4, column 3): while scanning a simple key, could not find expected ':'"]),
         ("- just\n- a list\n", ["top level must be a mapping"]),
+        # a control character: PyYAML gives a character offset and a second line, not a line and column
+        ("engine:\n  seed: 3\n\x00\n", ["not valid YAML (line 3, column 1): control character 0x00 is not allowed"]),
+        ("seed: \x01\n", ["not valid YAML (line 1, column 7): control character 0x01 is not allowed"]),
         ("engine:\n  seed: 1\nengine:\n  seed: 2\n", ["(line 3, column 1): key 'engine' is given twice"]),
         ("engine:\n  refine:\n    end_ratio: 0.9\n", ["engine.refine.end_ratio must not exceed"]),
         ("engine:\n  refine:\n    iterations: on\n", ["engine.refine.iterations", "expected a number, got a boolean"]),
@@ -206,6 +209,39 @@ def test_usage_errors_are_one_line_like_every_other_error(tmp_path):
     assert gctr("--version").returncode == 0
 
 
+def test_printing_commands_on_a_full_stdout_say_so_in_one_line(tmp_path):
+    """`gctr config show > /dev/full` (or --help, --version, config check, manifest) ended in an OSError
+    traceback and exit 1. Where the printed text is the result (the YAML, the help) it is exit 2 with one
+    line; where a file or the exit code is the result, a warning and the command's own exit code."""
+    def full(*args):
+        with open("/dev/full", "w") as dev_full:
+            return subprocess.run([PYTHON, "-m", "gctr_cli", *map(str, args)], stdout=dev_full,
+                                  stderr=subprocess.PIPE, text=True, timeout=120)
+
+    for args, problem in ((("config", "show"), "cannot print the configuration"),
+                          (("--help",), "cannot print to standard output"),
+                          (("--version",), "cannot print to standard output"),
+                          (("config", "--help"), "cannot print to standard output")):
+        done = full(*args)
+        assert (done.returncode, done.stderr) == (2, f"gctr: error: {problem} (No space left on device)\n"), args
+    good = tmp_path / "good.yaml"
+    good.write_text("seed: 3\n")
+    done = full("config", "check", good)
+    assert done.returncode == 0
+    assert done.stderr == f"gctr: WARNING: cannot print 'ok: {good}' (No space left on device)\n"
+    rng = np.random.default_rng(0)
+    write_cloud(tmp_path / "a" / "s.ply", bumpy_surface(rng, 50))
+    write_cloud(tmp_path / "b" / "s.ply", bumpy_surface(rng, 50))
+    done = full("manifest", tmp_path / "a", tmp_path / "b", "-o", tmp_path / "pairs.csv")
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    assert "cannot print the summary line (No space left on device)" in done.stderr
+    assert (tmp_path / "pairs.csv").read_text().startswith("pair_id,source,target\n")
+    # a reader that quits early is not an error at all
+    piped = subprocess.run(f"{PYTHON} -m gctr_cli --help | head -1", shell=True, capture_output=True, text=True,
+                           timeout=120)
+    assert piped.stdout.startswith("Usage: gctr") and piped.stderr == ""
+
+
 def test_config_check_missing_file_via_subprocess(tmp_path):
     out = gctr("config", "check", tmp_path / "nope.yaml")
     assert out.returncode == 2 and "does not exist" in out.stderr
@@ -233,6 +269,17 @@ def test_manifest_command(runner, tmp_path):
     assert [p.pair_id for p in pairs] == ["a", "b", "c"]
     assert pairs[0].source == (tmp_path / "lidar" / "a.ply").resolve()
     assert pairs[0].gt == (tmp_path / "gt" / "a.txt").resolve() and pairs[1].gt is None
+
+    # the manifest must not replace a file it lists, nor another input of the folders (it did, silently)
+    before = {f: f.read_bytes() for f in (tmp_path / "lidar" / "a.ply", tmp_path / "gt" / "a.txt",
+                                          tmp_path / "photo" / "only_here.ply")}
+    for out, says in ((tmp_path / "lidar" / "a.ply", "is also the source cloud of pair a"),
+                      (tmp_path / "gt" / "a.txt", "is also the ground truth of pair a"),
+                      (tmp_path / "photo" / "only_here.ply", "is an input file in TARGET_DIR")):
+        res = invoke(runner, "manifest", tmp_path / "lidar", tmp_path / "photo", "--gt-dir", tmp_path / "gt",
+                     "-o", out)
+        assert res.exit_code == 2 and f"gctr: error: {out}: {says}" in res.stderr, res.stderr
+    assert all(f.read_bytes() == data for f, data in before.items())
 
     res = invoke(runner, "manifest", tmp_path / "lidar", tmp_path / "nope", "-o", tmp_path / "p2.csv")
     assert res.exit_code == 2 and "does not exist" in res.stderr
