@@ -10,12 +10,16 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "apply", "coordinate_range_problem", "cross", "invert",
-           "random_rotation", "robust_core", "row_norms", "split", "to_matrix"]
+__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "STATS_POINTS", "apply", "coordinate_range_problem", "cross", "even_sample",
+           "extent", "invert", "random_rotation", "robust_core", "row_norms", "split", "to_matrix"]
 
 #: coordinates gctr can register: squared distances and covariances stay finite and nonzero in float64
 MAX_COORDINATE = 1e100
 MIN_EXTENT = 1e-100
+#: a cloud's order statistics (medians, percentiles) and shape tests are taken on at most this many of
+#: its points (:func:`even_sample`): a LiDAR tile's 10 million points took 7 s of sorting to read, for
+#: statistics a million points give as well; a cloud this size or smaller is used whole, as before
+STATS_POINTS = 1_000_000
 
 
 def to_matrix(s: float, R: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
@@ -94,12 +98,30 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     ])
 
 
+def even_sample(points: np.ndarray, n: int | None = None) -> np.ndarray:
+    """``points`` itself when it has at most ``n`` (default :data:`STATS_POINTS`) rows, else every k-th row
+    (k the smallest step that leaves at most ``n``): deterministic, and spread over the whole cloud in the
+    order it was stored."""
+    n = STATS_POINTS if n is None else n
+    return points if len(points) <= n else points[:: -(-len(points) // n)]
+
+
+def extent(points: np.ndarray) -> np.ndarray:
+    """The bounding box's size along x, y and z (``np.ptp(points, axis=0)`` exactly, column by column:
+    about 7 times faster on an ``(N, 3)`` array, which numpy reduces along its first axis row by row)."""
+    return np.array([np.ptp(points[:, k]) if len(points) else 0.0 for k in range(points.shape[1])])
+
+
 def robust_core(points: np.ndarray, spread: float = 3.0) -> np.ndarray:
     """The points of ``points`` ``(N, 3)`` within ``spread`` times the 90th-percentile distance of the
     coordinate-wise median: the cloud without its far outliers (a stray ``0 0 0`` "no return" in a
-    georeferenced export, a corrupt value), for the shape tests that one point must not decide."""
-    d = row_norms(points - np.median(points, axis=0))
-    return points[d <= spread * np.percentile(d, 90)]
+    georeferenced export, a corrupt value), for the shape tests that one point must not decide. The
+    median and the percentile are those of :func:`even_sample` (the whole cloud up to :data:`STATS_POINTS`)."""
+    reference = even_sample(points)
+    median = np.median(reference, axis=0)
+    d_ref = row_norms(reference - median)
+    d = d_ref if reference is points else row_norms(points - median)
+    return points[d <= spread * np.percentile(d_ref, 90)]
 
 
 def coordinate_range_problem(points: np.ndarray) -> str | None:
@@ -108,11 +130,11 @@ def coordinate_range_problem(points: np.ndarray) -> str | None:
     or a cloud whose extent is below :data:`MIN_EXTENT` without being a single point."""
     if not len(points):
         return None
-    big = float(np.abs(points).max())
+    big = max(abs(float(points.min())), abs(float(points.max())))  # |points|.max() without a copy
     if big > MAX_COORDINATE:
         return (f"coordinates too large to register (|value| up to {big:.3g}, limit {MAX_COORDINATE:.0e}): "
                 "a corrupt value, or units far outside any scanner's")
-    extent = float(np.ptp(points, axis=0).max())
-    if 0.0 < extent < MIN_EXTENT:
-        return f"cloud too small to register (extent {extent:.3g}, limit {MIN_EXTENT:.0e}): rescale it"
+    size = float(extent(points).max())
+    if 0.0 < size < MIN_EXTENT:
+        return f"cloud too small to register (extent {size:.3g}, limit {MIN_EXTENT:.0e}): rescale it"
     return None

@@ -156,7 +156,7 @@ def _load_other_clouds(spec: Any, clouds: dict[str, np.ndarray]) -> None:
 def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: int | None,
               clouds: dict[str, np.ndarray]) -> PairOutcome:
     """:func:`run_pair` without the snapshot; the loaded clouds are left in ``clouds``."""
-    from gctr_cli.geometry import robust_core
+    from gctr_cli.geometry import extent, robust_core
     from gctr_cli.io import MatrixError, PointCloudError, load_point_cloud, read_matrix
     from gctr_cli.io.errors import clean
     from gctr_cli.metrics import (
@@ -250,7 +250,7 @@ def _run_pair(spec: Any, config: Config, register_fn: RegisterFn | None, seed: i
             # without far stray points (a 0 0 0 beside UTM coordinates): one point must not make a
             # wrong matrix a success by inflating the diagonal, nor move where translation is measured
             core_t, core_s = robust_core(target, METRIC_SPREAD), robust_core(source, METRIC_SPREAD)
-            diagonal = float(np.linalg.norm(core_t.max(axis=0) - core_t.min(axis=0)))
+            diagonal = float(np.linalg.norm(extent(core_t)))
             errors = transform_errors(T, T_gt, diagonal, source_centre=core_s.mean(axis=0))
             s = config.success
             success = errors.success(s.rotation_deg, s.translation_rel, s.scale)
