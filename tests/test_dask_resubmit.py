@@ -64,7 +64,8 @@ class ScriptedClient:
     """Enough of ``distributed.Client`` for :func:`dask_executor.dask_outcomes`: each submission of a
     pair takes the next fate from ``fates[pair_id]`` (default: finished), and every submission is
     recorded as (pair_id, seed). Fates: ``finished``; ``lost``; ``killed:<worker>`` (its worker died
-    while running it); ``running:<worker>`` (starts on the worker and runs until gctr restarts that
+    while running it); ``queued:<worker>`` (its worker died before it started there); ``running:<worker>``
+    (starts on the worker and runs until gctr restarts that
     worker, then fails as killed there). Restarted workers are recorded in ``restarted``."""
 
     status = "running"
@@ -87,7 +88,10 @@ class ScriptedClient:
         if fate == "lost":
             return ScriptedFuture(key, "lost")
         kind, worker = fate.split(":", 1)
-        if kind == "killed":
+        if kind == "killed":  # it started, and its worker died under it
+            self.on_start((None, {"key": key, "worker": worker}))
+            return ScriptedFuture(key, "error", exception=killed_on(key, worker))
+        if kind == "queued":  # it waited on a worker that another pair crashed: it never started
             return ScriptedFuture(key, "error", exception=killed_on(key, worker))
         future = ScriptedFuture(key, "pending", worker=worker)  # "running:<worker>"
         self.running.append(future)
@@ -167,6 +171,18 @@ def test_a_pair_that_kills_its_own_worker_is_not_resubmitted(monkeypatch):
     assert client.submissions == [("a", 11), ("b", 12)]
     assert out["a"].status == "failed" and out["a"].failure == "worker"
     assert "worker died" in out["a"].message and "tcp://w1" in out["a"].message
+
+
+def test_a_pair_queued_on_a_worker_that_another_pair_crashed_is_resubmitted(monkeypatch):
+    # gctr's own LocalCluster sends a worker a second pair while the first runs; a kill -9 of that worker
+    # failed both as "worker died" (found by an audit, 3 of 3 runs). The waiting one never started: it runs again.
+    out, client = run(monkeypatch, {"a": ["killed:tcp://w1"], "b": ["queued:tcp://w1", "finished"]})
+    assert client.submissions == [("a", 11), ("b", 12), ("b", 12)]
+    assert out["a"].failure == "worker" and "tcp://w1" in out["a"].message
+    assert out["b"].message == "ran (submission 3)" and out["b"].seed == 12
+    # a pair that never starts anywhere is given up after MAX_RESUBMITS, as a lost one is
+    out, client = run(monkeypatch, {"b": ["queued:tcp://w1"] * (dask_executor.MAX_RESUBMITS + 1)})
+    assert out["b"].failure == "worker" and len(client.submissions) == 2 + dask_executor.MAX_RESUBMITS
 
 
 def test_a_pair_on_a_worker_replaced_after_another_pairs_time_out_is_resubmitted(monkeypatch):
