@@ -8,7 +8,7 @@ import signal
 import stat
 import sys
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
@@ -177,17 +177,25 @@ def set_parent_death_signal() -> None:
         pass
 
 
-def atomic_write(path: str | Path, data: bytes | str) -> None:
-    """Write ``data`` (bytes, or text written as UTF-8 without newline translation) so that a
+def atomic_write(path: str | Path, data: bytes | str | Iterable[bytes]) -> None:
+    """Write ``data`` (bytes, text written as UTF-8 without newline translation, or pieces of bytes
+    written one after another as they come: a large text file need not be built whole first) so that a
     reader or a kill never sees a half-written file: a temporary file next to ``path``, fsync,
     then ``os.replace``. Parent folders are created; the temporary file is removed on failure.
-    Raises OSError.
+    Raises OSError (and whatever producing a piece raises).
     """
     path = Path(path)
-    payload = data.encode("utf-8") if isinstance(data, str) else data
+    pieces: Iterable[bytes]
+    if isinstance(data, str):
+        pieces = [data.encode("utf-8")]
+    elif isinstance(data, bytes | bytearray):
+        pieces = [bytes(data)]  # (the same object for bytes: no copy)
+    else:
+        pieces = data
     if _is_special_file(path):  # /dev/null, /dev/stdout, a FIFO: write into it, never replace it
         with open(path, "wb") as fh:
-            fh.write(payload)
+            for piece in pieces:
+                fh.write(piece)
         return
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
@@ -195,7 +203,8 @@ def atomic_write(path: str | Path, data: bytes | str) -> None:
         # os.open with 0o666 honours the umask (tempfile would give 0600 files).
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
         with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
+            for piece in pieces:
+                fh.write(piece)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)

@@ -42,6 +42,7 @@ import dataclasses
 import logging
 import os
 import threading
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -179,11 +180,11 @@ def write_point_cloud(path: str | Path, cloud: PointCloud | np.ndarray, *, binar
             logger.warning("%s: the coordinate reference system of the LAS source (%s) is not kept: %s files "
                            "cannot hold it", clean(path), crs, fmt.name)
     if open3d_pcd and binary and fmt.name == "PCD":
-        from gctr_cli.io.pcd import float32_is_enough, pcd_bytes
+        from gctr_cli.io.pcd import float32_is_enough, pcd_chunks
 
         # float32 binary where it is exact enough, else float64 as text: Open3D reads both correctly
         as_float32 = float32_is_enough(cloud.points)
-        data = pcd_bytes(cloud, binary=as_float32, float32=as_float32)
+        data: bytes | Iterable[bytes] = pcd_chunks(cloud, binary=as_float32, float32=as_float32)
     else:
         data = fmt.write(cloud, binary, path)
     try:

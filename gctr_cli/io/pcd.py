@@ -12,8 +12,10 @@ for gigabytes.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +33,7 @@ from gctr_cli.io.lines import (
     parse_float,
     read_rows,
 )
-from gctr_cli.io.ply import format_columns, pack_columns
+from gctr_cli.io.ply import format_column_blocks, pack_columns
 
 __all__ = ["read_pcd", "pcd_bytes"]
 
@@ -379,10 +381,15 @@ def _number(v: float) -> str:
 
 
 def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> bytes:
-    """The bytes of a PCD file: float64 x y z plus the 1-D numeric attributes in their own types
-    (``red``/``green``/``blue`` packed into PCL's ``rgb`` float, or with an 8-bit ``alpha`` into its
-    ``rgba`` uint32; 16-bit colours as 8-bit); binary, or ASCII with ``%.17g``. The VIEWPOINT is a PCD
-    source's own, moved with the points (:func:`_viewpoint`).
+    """The bytes of a PCD file (:func:`pcd_chunks` joined)."""
+    return b"".join(pcd_chunks(cloud, binary, float32))
+
+
+def pcd_chunks(cloud: PointCloud, binary: bool = True, float32: bool = False) -> Iterable[bytes]:
+    """A PCD file in pieces (ASCII rows formatted block by block as the file is written): float64 x y z
+    plus the 1-D numeric attributes in their own types (``red``/``green``/``blue`` packed into PCL's
+    ``rgb`` float, or with an 8-bit ``alpha`` into its ``rgba`` uint32; 16-bit colours as 8-bit); binary,
+    or ASCII with ``%.17g``. The VIEWPOINT is a PCD source's own, moved with the points (:func:`_viewpoint`).
     With ``float32`` the coordinates and normals are float32 (Open3D's legacy reader cannot read float64
     binary PCD files; check :func:`float32_is_enough` first). Normals are written as PCL's ``normal_x
     normal_y normal_z``."""
@@ -420,7 +427,6 @@ def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> 
         f"DATA {'binary' if binary else 'ascii'}\n"
     )
     if binary:
-        body = pack_columns([v for _, v in cols])
-    else:
-        body = format_columns([v if name != "rgb" else v.astype(np.float64) for name, v in cols])
-    return header.encode("ascii") + body
+        return [header.encode("ascii"), pack_columns([v for _, v in cols])]
+    return itertools.chain([header.encode("ascii")],
+                           format_column_blocks([v if name != "rgb" else v.astype(np.float64) for name, v in cols]))

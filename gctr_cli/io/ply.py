@@ -13,7 +13,9 @@ announces); list lengths must be non-negative and fit in the file.
 
 from __future__ import annotations
 
+import itertools
 import logging
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -438,9 +440,14 @@ def _ply_type(name: str, v: np.ndarray, where: str) -> str | None:
 
 
 def ply_bytes(cloud: PointCloud, binary: bool = True, path: Path | None = None) -> bytes:
-    """The bytes of a PLY file: float64 x y z plus every 1-D attribute in its own type, or the nearest
-    PLY has (:func:`_ply_type`; binary little endian when ``binary``, else ASCII with ``%.17g``).
-    Normals are written as ``nx ny nz``, 16-bit colours as 8-bit
+    """The bytes of a PLY file (:func:`ply_chunks` joined)."""
+    return b"".join(ply_chunks(cloud, binary, path))
+
+
+def ply_chunks(cloud: PointCloud, binary: bool = True, path: Path | None = None) -> Iterable[bytes]:
+    """A PLY file in pieces: float64 x y z plus every 1-D attribute in its own type, or the nearest
+    PLY has (:func:`_ply_type`; binary little endian when ``binary``, else ASCII with ``%.17g``, formatted
+    block by block as the file is written). Normals are written as ``nx ny nz``, 16-bit colours as 8-bit
     (:func:`~gctr_cli.io.cloud.eight_bit_colours`)."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     n = len(pts)
@@ -457,8 +464,9 @@ def ply_bytes(cloud: PointCloud, binary: bool = True, path: Path | None = None) 
     fmt = "binary_little_endian" if binary else "ascii"
     header = f"ply\nformat {fmt} 1.0\ncomment written by gctr\nelement vertex {n}\n"
     header += "".join(f"property {_TYPE_NAMES[v.dtype.str[1:]]} {name}\n" for name, v in cols) + "end_header\n"
-    body = pack_columns([v for _, v in cols]) if binary else format_columns([v for _, v in cols])
-    return header.encode("ascii") + body
+    if binary:
+        return [header.encode("ascii"), pack_columns([v for _, v in cols])]
+    return itertools.chain([header.encode("ascii")], format_column_blocks([v for _, v in cols]))
 
 
 def pack_columns(cols: list[np.ndarray]) -> bytes:
@@ -475,13 +483,17 @@ TEXT_BLOCK_ROWS = 65536
 
 def format_columns(cols: list[np.ndarray], separator: str = " ") -> bytes:
     """Text rows of the columns: floats as ``%.17g`` (exact round trip), integers as integers."""
+    return b"".join(format_column_blocks(cols, separator))
+
+
+def format_column_blocks(cols: list[np.ndarray], separator: str = " ") -> Iterator[bytes]:
+    """:func:`format_columns` block by block (:data:`TEXT_BLOCK_ROWS` rows each), formatted as they are
+    asked for: a writer that writes each block as it comes never holds the whole text (10 million rows
+    of 7 columns are 740 MB of text, and were built whole, then copied, before being written)."""
     if not cols or len(cols[0]) == 0:
-        return b""
+        return
     fmts = ["%.17g" if c.dtype.kind == "f" else "%d" for c in cols]
     line_fmt = separator.join(fmts) + "\n"
-    # in blocks, so that the Python objects of the formatting stay small next to the text itself
-    blocks = []
     for start in range(0, len(cols[0]), TEXT_BLOCK_ROWS):
         rows = zip(*(c[start:start + TEXT_BLOCK_ROWS].tolist() for c in cols))
-        blocks.append("".join(line_fmt % row for row in rows).encode("ascii"))
-    return b"".join(blocks)
+        yield "".join(line_fmt % row for row in rows).encode("ascii")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,7 +11,8 @@ from gctr_cli.io.cloud import PointCloud
 __all__ = ["FORMATS", "Format", "READ_EXTENSIONS", "WRITE_EXTENSIONS", "format_of"]
 
 Reader = Callable[[Path, object, int, bool], PointCloud]
-Writer = Callable[[PointCloud, bool, Path], bytes]  # (cloud, binary, the path: for messages)
+# (cloud, binary, the path: for messages) -> the file's bytes, whole or in pieces (text formatted as it is written)
+Writer = Callable[[PointCloud, bool, Path], bytes | Iterable[bytes]]
 
 
 def _reader(module: str, name: str) -> Reader:
@@ -25,34 +26,34 @@ def _reader(module: str, name: str) -> Reader:
     return read
 
 
-def _write_ply(cloud: PointCloud, binary: bool, path: Path) -> bytes:
-    from gctr_cli.io.ply import ply_bytes
+def _write_ply(cloud: PointCloud, binary: bool, path: Path) -> Iterable[bytes]:
+    from gctr_cli.io.ply import ply_chunks
 
-    return ply_bytes(cloud, binary, path)
-
-
-def _write_pcd(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
-    from gctr_cli.io.pcd import pcd_bytes
-
-    return pcd_bytes(cloud, binary)
+    return ply_chunks(cloud, binary, path)
 
 
-def _write_text(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
-    from gctr_cli.io.text import text_bytes
+def _write_pcd(cloud: PointCloud, binary: bool, path: Path) -> Iterable[bytes]:  # noqa: ARG001
+    from gctr_cli.io.pcd import pcd_chunks
 
-    return text_bytes(cloud)
-
-
-def _write_csv(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
-    from gctr_cli.io.text import csv_bytes
-
-    return csv_bytes(cloud)
+    return pcd_chunks(cloud, binary)
 
 
-def _write_pts(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001
-    from gctr_cli.io.text import pts_bytes
+def _write_text(cloud: PointCloud, binary: bool, path: Path) -> Iterable[bytes]:  # noqa: ARG001
+    from gctr_cli.io.text import text_chunks
 
-    return pts_bytes(cloud, path)
+    return text_chunks(cloud)
+
+
+def _write_csv(cloud: PointCloud, binary: bool, path: Path) -> Iterable[bytes]:  # noqa: ARG001
+    from gctr_cli.io.text import csv_chunks
+
+    return csv_chunks(cloud)
+
+
+def _write_pts(cloud: PointCloud, binary: bool, path: Path) -> Iterable[bytes]:  # noqa: ARG001
+    from gctr_cli.io.text import pts_chunks
+
+    return pts_chunks(cloud, path)
 
 
 def _write_las(cloud: PointCloud, binary: bool, path: Path) -> bytes:  # noqa: ARG001

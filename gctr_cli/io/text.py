@@ -36,10 +36,11 @@ of points, not the size of the text: about 180 MB and 7 s for 2 million points. 
 from __future__ import annotations
 
 import io as _stdio
+import itertools
 import logging
 import re
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +48,7 @@ import numpy as np
 
 from gctr_cli.io.cloud import ATTRIBUTE_NOTE, PointCloud, eight_bit_colours, integer_misfit
 from gctr_cli.io.errors import PointCloudError, clean, quote
-from gctr_cli.io.ply import format_columns
+from gctr_cli.io.ply import format_column_blocks
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -501,27 +502,45 @@ def _numeric_attributes(cloud: PointCloud) -> list[tuple[str, np.ndarray]]:
 
 
 def text_bytes(cloud: PointCloud) -> bytes:
+    """An ``.xyz`` / ``.txt`` file (:func:`text_chunks` joined)."""
+    return b"".join(text_chunks(cloud))
+
+
+def text_chunks(cloud: PointCloud) -> Iterable[bytes]:
     """Text rows ``x y z [attributes...]`` (``%.17g``, exact round trip) of an ``.xyz`` / ``.txt`` file;
-    with attributes, a ``# x y z name ...`` comment line names the columns."""
+    with attributes, a ``# x y z name ...`` comment line names the columns. In pieces, the rows formatted
+    block by block as the file is written."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     extra = _numeric_attributes(cloud)
     head = ""
     if extra:
         head += "# x y z " + " ".join("_".join(str(k).split()) for k, _ in extra) + "\n"
-    return head.encode("ascii") + format_columns([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra])
+    return itertools.chain([head.encode("ascii")],
+                           format_column_blocks([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra]))
 
 
 def csv_bytes(cloud: PointCloud) -> bytes:
+    """A ``.csv`` file (:func:`csv_chunks` joined)."""
+    return b"".join(csv_chunks(cloud))
+
+
+def csv_chunks(cloud: PointCloud) -> Iterable[bytes]:
     """A ``.csv`` file: a header line ``x,y,z,name,...`` and comma-separated rows (``%.17g``), with every
-    numeric attribute after x y z (as :func:`text_bytes`)."""
+    numeric attribute after x y z (as :func:`text_chunks`), in pieces."""
     pts = np.asarray(cloud.points, dtype=np.float64)
     extra = _numeric_attributes(cloud)
     head = ",".join(["x", "y", "z"] + ["_".join(str(k).split()) for k, _ in extra]) + "\n"
-    return head.encode("ascii") + format_columns([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra], ",")
+    return itertools.chain([head.encode("ascii")],
+                           format_column_blocks([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra], ","))
 
 
 def pts_bytes(cloud: PointCloud, path: Path | None = None) -> bytes:
-    """A ``.pts`` file: the point count, then rows ``x y z [intensity] [red green blue]`` and nothing else.
+    """A ``.pts`` file (:func:`pts_chunks` joined)."""
+    return b"".join(pts_chunks(cloud, path))
+
+
+def pts_chunks(cloud: PointCloud, path: Path | None = None) -> Iterable[bytes]:
+    """A ``.pts`` file in pieces: the point count, then rows ``x y z [intensity] [red green blue]`` and nothing else.
 
     PTS has no comments and no names: readers know the columns by their number (Open3D takes 3, 4, 6
     or 7 and read a ``# x y z ...`` line as points (0, 0, 0), or no points at all). Colours are written
@@ -546,4 +565,4 @@ def pts_bytes(cloud: PointCloud, path: Path | None = None) -> bytes:
         logger.warning("%s: attributes not written: %s (a .pts file holds x y z, intensity and red green blue "
                        "0..255 only); write .ply, .pcd or .las to keep them", clean(path or "PTS output"),
                        clean(", ".join(left_out)))
-    return f"{n}\n".encode("ascii") + format_columns(cols)
+    return itertools.chain([f"{n}\n".encode("ascii")], format_column_blocks(cols))
