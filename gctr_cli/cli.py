@@ -457,6 +457,17 @@ def _stdout_to_devnull() -> None:
     os.close(devnull)
 
 
+class _Rate(click.FloatRange):
+    """A number in a range, and not NaN: click's range check lets ``nan`` through (every comparison with
+    it is false), and ``--min-success nan`` then passed every batch, however many pairs failed."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        rate = super().convert(value, param, ctx)
+        if rate != rate:  # NaN
+            self.fail(f"{value!r} is not a number in the range {self._describe_range()}.", param, ctx)
+        return rate
+
+
 def _check_output_cloud(path: Path) -> None:
     """Exit 2 before any work when ``path`` has no extension gctr can write a cloud to, or cannot be
     written (:func:`_check_writable`)."""
@@ -622,7 +633,7 @@ def _print_summary(summary: Any, config: Any) -> None:
               help="With --resume: also run again the pairs whose earlier row is failed (timeouts, killed "
                    "workers, files fixed since).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
-@click.option("--min-success", type=click.FloatRange(0.0, 1.0), metavar="RATE",
+@click.option("--min-success", type=_Rate(0.0, 1.0), metavar="RATE",
               help="Exit 3 if the success rate over pairs with ground truth is below RATE (0..1).")
 @click.option("--executor", type=click.Choice(["local", "dask"]), default=None,
               help="Where pairs run: 'local' process pool (default) or a dask.distributed cluster "

@@ -549,6 +549,10 @@ def test_batch_exit_2_nothing_run(runner, monkeypatch, four_pairs, tmp_path):
     assert res.exit_code == 2 and "manifest does not exist" in res.stderr
     res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "--min-success", 1.5)
     assert res.exit_code == 2 and "--min-success" in res.stderr
+    # NaN passed click's range check, and then every gate (a CI template's "$THRESH" left as nan)
+    for nan in ("nan", "NaN"):
+        res = invoke(runner, "batch", four_pairs.manifest(), "-o", out, "--min-success", nan)
+        assert res.exit_code == 2 and f"'{nan}' is not a number in the range 0.0<=x<=1.0" in res.stderr
     res = invoke(runner, "batch", four_pairs.manifest())
     assert res.exit_code == 2 and "Missing option '-o'" in res.stderr
     assert not out.exists()
