@@ -197,7 +197,7 @@ def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> np.ndarray:
     if problem:
         raise PointCloudError(f"{path}: {problem}")
     n = len(pts)
-    sample = even_sample(pts)  # a large cloud is cleared on an even sample of it (the shape tests read every point)
+    sample = even_sample(pts)  # a large cloud is cleared on an even sample of it, not by sorting every point
     core = robust_core(sample)
     if sample is not pts and ((core == core[0]).all() or _collinear(core) is not None):
         core = robust_core(pts)  # a problem seen on the sample: decided, and counted, on every point
