@@ -10,14 +10,14 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "STATS_POINTS", "apply", "coordinate_range_problem", "cross", "even_sample",
-           "extent", "invert", "random_rotation", "robust_core", "row_norms", "split", "to_matrix"]
+__all__ = ["MAX_COORDINATE", "MIN_EXTENT", "STATS_POINTS", "apply", "coordinate_range_problem", "cross", "extent",
+           "invert", "random_rotation", "robust_core", "row_norms", "split", "stats_sample", "to_matrix"]
 
 #: coordinates gctr can register: squared distances and covariances stay finite and nonzero in float64
 MAX_COORDINATE = 1e100
 MIN_EXTENT = 1e-100
 #: a cloud's order statistics (medians, percentiles) and shape tests are taken on at most this many of
-#: its points (:func:`even_sample`): a LiDAR tile's 10 million points took 7 s of sorting to read, for
+#: its points (:func:`stats_sample`): a LiDAR tile's 10 million points took 7 s of sorting to read, for
 #: statistics a million points give as well; a cloud this size or smaller is used whole, as before
 STATS_POINTS = 1_000_000
 
@@ -98,12 +98,15 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     ])
 
 
-def even_sample(points: np.ndarray, n: int | None = None) -> np.ndarray:
-    """``points`` itself when it has at most ``n`` (default :data:`STATS_POINTS`) rows, else every k-th row
-    (k the smallest step that leaves at most ``n``): deterministic, and spread over the whole cloud in the
-    order it was stored."""
+def stats_sample(points: np.ndarray, n: int | None = None) -> np.ndarray:
+    """``points`` itself when it has at most ``n`` (default :data:`STATS_POINTS`) rows, else ``n`` rows drawn
+    at random with a fixed seed (with replacement, in stored order): the same rows for the same cloud, and
+    no stride that a repeating record pattern could alias (every k-th row of a scan whose every 4th record
+    is a ``0 0 0`` "no return" was all zeros for k = 4)."""
     n = STATS_POINTS if n is None else n
-    return points if len(points) <= n else points[:: -(-len(points) // n)]
+    if len(points) <= n:
+        return points
+    return points[np.sort(np.random.default_rng(0).integers(0, len(points), n))]
 
 
 def extent(points: np.ndarray) -> np.ndarray:
@@ -112,12 +115,13 @@ def extent(points: np.ndarray) -> np.ndarray:
     return np.array([np.ptp(points[:, k]) if len(points) else 0.0 for k in range(points.shape[1])])
 
 
-def robust_core(points: np.ndarray, spread: float = 3.0) -> np.ndarray:
+def robust_core(points: np.ndarray, spread: float = 3.0, exact: bool = False) -> np.ndarray:
     """The points of ``points`` ``(N, 3)`` within ``spread`` times the 90th-percentile distance of the
     coordinate-wise median: the cloud without its far outliers (a stray ``0 0 0`` "no return" in a
     georeferenced export, a corrupt value), for the shape tests that one point must not decide. The
-    median and the percentile are those of :func:`even_sample` (the whole cloud up to :data:`STATS_POINTS`)."""
-    reference = even_sample(points)
+    median and the percentile are those of :func:`stats_sample` (the whole cloud up to :data:`STATS_POINTS`),
+    or of every point with ``exact``."""
+    reference = points if exact else stats_sample(points)
     median = np.median(reference, axis=0)
     d_ref = row_norms(reference - median)
     d = d_ref if reference is points else row_norms(points - median)

@@ -1028,11 +1028,17 @@ def test_a_large_cloud_is_checked_on_a_sample_and_a_problem_counted_on_every_poi
     # one point off the line among 5000 is missed by the sample but not by the whole cloud: accepted, whole
     off = np.vstack([line[:2500], [[0.5, 0.2, 0.1]], line[2500:]])
     np.testing.assert_array_equal(load_point_cloud(_saved(tmp_path / "off.ply", off)), off)
+    # every 4th record a "no return" 0 0 0: a stride of 4 (the first form, every k-th point) sampled only
+    # those and refused the cloud as identical points (found by a review); a seeded random sample does not
+    scan = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0]
+    scan[::4] = 0.0
+    np.testing.assert_array_equal(load_point_cloud(_saved(tmp_path / "returns.ply", scan)), scan)
 
 
-def test_order_statistics_of_a_large_cloud_come_from_an_even_sample(rng, monkeypatch):
+def test_order_statistics_of_a_large_cloud_come_from_a_sample(rng, monkeypatch):
     """robust_core and the engine's normalisation: the whole cloud up to STATS_POINTS (the same numbers as
-    before), an even sample above it (within a fraction of a percent of the whole cloud's)."""
+    before), a seeded sample above it (within a few percent of the whole cloud's), also for a cloud whose
+    every 4th record is 0 0 0 (a stride of 4 made its size 0 and the normalised cloud inf)."""
     import gctr_cli.geometry
     from gctr_cli.engine.preprocess import robust_centre_and_size
     from gctr_cli.geometry import robust_core, row_norms
@@ -1047,6 +1053,12 @@ def test_order_statistics_of_a_large_cloud_come_from_an_even_sample(rng, monkeyp
     assert abs(len(core) / whole - 1) < 0.01 and set(map(tuple, core)) <= set(map(tuple, pts))
     sampled_centre, sampled_size = robust_centre_and_size(pts)
     assert np.linalg.norm(sampled_centre - centre) < 0.02 * size and abs(sampled_size / size - 1) < 0.02
+    pts[::10] = 0.0  # every 10th record: a stride of 10 over 20,000 points for a 2,000-point sample
+    monkeypatch.setattr(gctr_cli.geometry, "STATS_POINTS", 1_000_000)
+    centre, size = robust_centre_and_size(pts)
+    monkeypatch.setattr(gctr_cli.geometry, "STATS_POINTS", 2000)
+    sampled_centre, sampled_size = robust_centre_and_size(pts)
+    assert np.linalg.norm(sampled_centre - centre) < 0.03 * size and abs(sampled_size / size - 1) < 0.03
 
 
 def _saved(path: Path, points: np.ndarray) -> Path:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gctr_cli.engine.scipy_parts import cKDTree
-from gctr_cli.geometry import coordinate_range_problem, cross, even_sample, robust_core, row_norms
+from gctr_cli.geometry import coordinate_range_problem, cross, robust_core, row_norms, stats_sample
 
 
 class DegenerateCloudError(ValueError):
@@ -116,9 +116,9 @@ def robust_centre_and_size(points: np.ndarray) -> tuple[np.ndarray, float]:
     distances to that centre.
 
     Unlike the bounding-box diagonal this barely moves under rotation, moderate crops and outliers.
-    Taken on :func:`~gctr_cli.geometry.even_sample` of the cloud (all of it up to a million points).
+    Taken on :func:`~gctr_cli.geometry.stats_sample` of the cloud (all of it up to a million points).
     """
-    points = even_sample(points)
+    points = stats_sample(points)
     median = np.median(points, axis=0)
     r0 = row_norms(points - median)
     centre = points[r0 <= np.percentile(r0, 80)].mean(axis=0)

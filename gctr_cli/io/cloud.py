@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gctr_cli.geometry import coordinate_range_problem, even_sample, extent, robust_core
+from gctr_cli.geometry import coordinate_range_problem, extent, robust_core, stats_sample
 from gctr_cli.io.errors import PointCloudError, clean
 
 __all__ = ["COLLINEAR_RTOL", "NORMAL_NAMES", "PointCloud", "ascii_attribute_names", "ascii_name", "eight_bit_colours",
@@ -192,15 +192,15 @@ def coarse_step_note(points: np.ndarray, core: np.ndarray | None = None) -> str 
 def _check_shape(pts: np.ndarray, path: Path, dropped: str) -> np.ndarray:
     """Refuse coordinates float64 cannot register, and clouds whose core (without far outliers: one
     stray point must not decide) is a single point or a line; return that core (of
-    :func:`~gctr_cli.geometry.even_sample` of a cloud that passes)."""
+    :func:`~gctr_cli.geometry.stats_sample` of a cloud that passes)."""
     problem = coordinate_range_problem(pts)
     if problem:
         raise PointCloudError(f"{path}: {problem}")
     n = len(pts)
-    sample = even_sample(pts)  # a large cloud is cleared on an even sample of it, not by sorting every point
+    sample = stats_sample(pts)  # a large cloud is cleared on a sample of it, not by sorting every point
     core = robust_core(sample)
     if sample is not pts and ((core == core[0]).all() or _collinear(core) is not None):
-        core = robust_core(pts)  # a problem seen on the sample: decided, and counted, on every point
+        core = robust_core(pts, exact=True)  # a problem seen on the sample: decided, and counted, on every point
     outliers = f", apart from {n - len(core)} far outlier(s)" if len(core) < n else ""
     if (core == core[0]).all():
         if len(core) == n:
