@@ -23,8 +23,9 @@ order, ``--resume``, lock).
   ``distributed.scheduler.allowed-failures = 0`` so that, as with the local pool, the first death fails the pair; an
   external scheduler keeps its own setting (default 3 retries on other workers, which also covers preempted nodes);
   a pair whose result dies with a worker another pair crashed runs again, and so does a pair that was waiting on
-  that worker and had not started (its start is announced, see the time limit). Any other exception of a task
-  gives a failed row naming it.
+  that worker and had not started, when the pair that had started there is known (starts are announced, see the
+  time limit; an announcement can die with the worker, and then no pair runs again). Any other exception of a
+  task gives a failed row naming it.
 * **Time limit** (best effort): a pair running longer than ``batch.time_limit_s`` (measured from when its task
   starts executing on a worker, which the task announces with a dask event; waiting for a worker does not count)
   gets the failed row ``timed out after N s``; its future is cancelled and its worker process replaced (a Python
@@ -338,6 +339,7 @@ def dask_outcomes(
     closing = threading.Event()
     restarts: list[threading.Thread] = []  # restarts of the workers of timed-out pairs (external cluster)
     killed_workers: set[str] = set()  # workers gctr replaced because a pair timed out
+    crashed_workers: set[str] = set()  # workers that died under a pair that had announced its start
     resubmits: dict[str, int] = {}
     n_submitted = 0
     slots, slots_checked = 1, -math.inf
@@ -393,7 +395,10 @@ def dask_outcomes(
                 # gctr cancels only futures it no longer waits for: a cancelled one means the scheduler is gone
                 raise _lost(scheduler, len(inflight)) from exc
             _track_starts(starts, inflight)  # (starts announced while waiting: who was running when a worker died)
-            for future in [f for f in inflight if f in done]:  # submission order among the finished
+            finished = [f for f in inflight if f in done]  # submission order among the finished
+            crashed_workers.update(a for f in finished if inflight[f].started is not None
+                                   and (a := _killed_worker_address(f)) is not None)
+            for future in finished:
                 if future.status == "cancelled":  # not by us (see above): the scheduler is gone or restarted
                     raise _lost(scheduler, len(inflight))
                 job = inflight.pop(future)
@@ -405,15 +410,18 @@ def dask_outcomes(
                 except OSError as exc:  # the result or error cannot be fetched any more
                     raise _lost(scheduler, len(inflight) + 1) from exc
                 future.release()
-                # queued on a worker that another pair crashed: it never started (the scheduler sends a worker
-                # more than one task when they are not "root-ish", and fails them all when it dies)
-                never_started = lost_on is not None and job.started is None
+                # queued on a worker that another pair, known to have started there, crashed: it never started
+                # (the scheduler sends a worker more than one task when they are not "root-ish", and fails them
+                # all when it dies). Without a known culprit (its start announcement died with the worker) no
+                # pair is resubmitted: the one that crashed it would crash another worker.
+                never_started = lost_on is not None and job.started is None and lost_on in crashed_workers
                 if ((result_lost or lost_on in killed_workers or never_started)
                         and resubmits.get(job.spec.pair_id, 0) < MAX_RESUBMITS):
                     resubmits[job.spec.pair_id] = resubmits.get(job.spec.pair_id, 0) + 1  # an innocent pair
                     logger.info("pair %s: %s; resubmitting", job.spec.pair_id, "its result was lost with its worker"
                                 if result_lost else "its worker was replaced (another pair timed out)"
-                                if lost_on in killed_workers else "its worker died before the pair started there")
+                                if lost_on in killed_workers else "its worker died under another pair before this one "
+                                "started there")
                     pending.appendleft((job.spec, job.seed))
                     continue
                 yield outcome
