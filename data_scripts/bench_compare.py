@@ -970,6 +970,12 @@ def single_core_section(stats, methods, meta: dict[str, Any]) -> list[str]:
     the wall time of one whole ``gctr register`` process from ``bench/PROCESS.md``."""
     proc = process_times(PROCESS_REPORT)
     gctr_t = stats[("gctr", "all")]["time_med"] if ("gctr", "all") in stats else math.nan
+    workers = int(meta.get("settings", {}).get("workers", 1))
+    if workers != 1:  # (a quick run: -j 2) its times are not single-core figures; say so rather than claim them
+        return ["## Time per pair (issue 10)", "",
+                f"Not a single-core measurement: this run used `-j {workers}` (two workers share the machine's "
+                "cores, and their times per pair differ from a one-worker run's). The single-core comparison of "
+                "issue 10 comes from the full run (`make bench`, `-j 1`).", ""]
     L = ["## Single core: time per pair and whole process (issue 10)", "",
          f"Registration time per pair: median `runtime_s` over all pairs of this run, one worker per batch "
          f"(`{meta.get('command', 'python -m data_scripts.bench_compare')}`; "

@@ -75,7 +75,7 @@ from data_scripts.common import (
     write_points,
 )
 from gctr_cli.geometry import apply, invert, random_rotation, to_matrix
-from gctr_cli.io import load_point_cloud, write_matrix
+from gctr_cli.io import PointCloudError, load_point_cloud, write_matrix
 
 log = logging.getLogger(__name__)
 
@@ -879,7 +879,12 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
     special = [lv for lv in level_names if lv in SPECIAL_LEVELS]
     scenes = load_scenes(shared) if "scene" in level_names else None  # fail early on missing files
     dragon = load_dragon_scans(shared) if (real or "real" in level_names) else None  # likewise
-    loaded = load_models(_split(models)) if synthetic or special else {}
+    try:
+        loaded = load_models(_split(models)) if synthetic or special else {}
+    except PointCloudError as exc:  # a --models file that is missing or not a point cloud
+        raise click.BadParameter(str(exc), param_hint="--models") from None
+    if (blocked := next((d for d in (out, *out.parents) if d.exists()), None)) is not None and not blocked.is_dir():
+        raise click.BadParameter(f"{out}: {blocked} is a file, not a folder", param_hint="--out")
     rows = generate_synthetic(loaded, synthetic, pairs_per_model, seed, out, fmts, n_source, pcd_encoding)
     if real or "real" in level_names:
         if real_full_res and shared is None:

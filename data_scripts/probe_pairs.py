@@ -211,8 +211,15 @@ def main(argv: list[str] | None = None) -> int:
     sizes = args.sizes or {"sparse": "300,500,800,1200", "unrelated": "1000,2000", "mirrored": "2000,8000"}[args.kind]
     noises = args.noise or ("0,0.002" if args.kind == "sparse" else "0.002")
     models = [f"{a}>{b}" for a in MODELS for b in MODELS if a != b] if args.kind == "unrelated" else list(MODELS)
-    tasks = [(args.kind, m, int(n), float(z), rep, args.offset, config) for m in models for n in sizes.split(",")
-             for z in noises.split(",") for rep in range(args.reps)]
+    try:
+        size_values = [int(n) for n in sizes.split(",")]
+        noise_values = [float(z) for z in noises.split(",")]
+    except ValueError as err:
+        p.error(f"--sizes and --noise take comma-separated numbers ({err})")
+    if args.reps < 1 or min(size_values) < 10 or not all(0 <= z < 0.1 for z in noise_values):
+        p.error("--reps must be at least 1, --sizes at least 10 points, --noise in [0, 0.1)")
+    tasks = [(args.kind, m, n, z, rep, args.offset, config) for m in models for n in size_values
+             for z in noise_values for rep in range(args.reps)]
     with multiprocessing.get_context("spawn").Pool(max(args.jobs, 1)) as pool:
         rows = pool.map(run_one, tasks, chunksize=1)
     title = (f"{args.kind}, offset {args.offset}, noise {noises}"

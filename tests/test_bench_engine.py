@@ -327,3 +327,12 @@ def test_a_failed_generation_is_a_clear_error_not_a_traceback(monkeypatch, tmp_p
         be.ensure_data(tmp_path / "d7", 7)
     assert be.main(["--seed", "7", "--data", str(tmp_path / "d7"), "--no-diagnose", "-q",
                     "--out", str(tmp_path / "x.md")]) == 2
+
+
+def test_the_report_header_names_the_pairs_this_run_used():
+    """It said "the report set … --seed 0" for any run, then "(`--seed 1` here)" (found by an audit)."""
+    from data_scripts.bench_engine import report_header
+
+    text = report_header("d/pairs.csv", ["easy", "part"], 9)
+    assert "Pairs:\n`d/pairs.csv`, levels easy,part, generator seed 9 — a set other than the report and tuning" in text
+    assert "the report set (" in report_header("d/pairs.csv", ["easy"], 0)

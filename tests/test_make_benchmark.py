@@ -381,6 +381,20 @@ def test_scene_noise_without_the_scene_level_is_a_usage_error(tmp_path):
     assert not (tmp_path / "pairs.csv").exists()
 
 
+def test_a_bad_models_file_or_an_out_under_a_file_is_one_line(tmp_path):
+    """They ended in a 30-line traceback (found by an audit)."""
+    from click.testing import CliRunner
+
+    (tmp_path / "afile").write_text("x")
+    for args, expected in ((["--models", str(tmp_path / "none.ply"), "--out", str(tmp_path / "d")],
+                            "Invalid value for --models: " + str(tmp_path / "none.ply") + ": file does not exist"),
+                           (["--out", str(tmp_path / "afile" / "sub")],
+                            f"Invalid value for --out: {tmp_path / 'afile' / 'sub'}: {tmp_path / 'afile'} is a file")):
+        res = CliRunner().invoke(mb.cli, ["generate", "--levels", "easy", "--pairs-per-model", "1", *args])
+        assert res.exit_code == 2 and expected in res.output, res.output
+        assert res.exception is None or isinstance(res.exception, SystemExit)
+
+
 def test_scene_missing_shared_file_is_named(tmp_path):
     (tmp_path / "real" / "nclt_lidar").mkdir(parents=True)
     with pytest.raises(Exception, match=r"cloud_bin_0\.ply"):

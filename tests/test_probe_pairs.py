@@ -72,3 +72,11 @@ def test_mirrored_pair_is_a_reflection_of_a_crop_of_the_model():
     M, *_ = np.linalg.lstsq(crop - crop.mean(0), back - back.mean(0), rcond=None)
     assert np.allclose(M.T @ M, np.eye(3), atol=1e-9) and np.linalg.det(M) == pytest.approx(-1.0)
     assert np.allclose(back, (crop - crop.mean(0)) @ M + back.mean(0), atol=1e-9)
+
+
+@pytest.mark.parametrize("args", [["--sizes", "abc"], ["--reps", "-1"], ["--noise", "x"]])
+def test_bad_sizes_reps_or_noise_are_usage_errors(args, capsys):
+    """--sizes abc ended in a traceback and --reps -1 wrote an empty report (found by an audit)."""
+    with pytest.raises(SystemExit) as ei:
+        main(["--kind", "sparse", "--offset", "7", *args])
+    assert ei.value.code == 2 and "error: --" in capsys.readouterr().err
