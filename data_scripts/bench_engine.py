@@ -442,10 +442,14 @@ def write_tool_outputs(report: str, rows: list[dict[str, Any]], out: Path | None
 
 
 def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
-               config_dict: dict[str, Any], quick_pairs: int = QUICK_PAIRS) -> list[dict[str, Any]]:
+               config_dict: dict[str, Any], quick_pairs: int = QUICK_PAIRS,
+               check_files: bool = True) -> list[dict[str, Any]]:
     """One task per selected pair, in manifest order (``--quick``: first ``quick_pairs`` per model per level);
-    ``meta`` holds the pair's whole manifest row (the generator's extra columns, e.g. ``overlap_src``)."""
+    ``meta`` holds the pair's whole manifest row (the generator's extra columns, e.g. ``overlap_src``). With
+    ``check_files`` a selected pair's clouds must exist and its ground truth must read (bad data is named
+    before anything runs; a caller that only renders saved results passes False)."""
     from gctr_cli.batch import derive_seed
+    from gctr_cli.io import MatrixError, read_matrix
     from gctr_cli.manifest import ManifestError, read_manifest
 
     try:
@@ -456,14 +460,26 @@ def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
         extra = {r["pair_id"].strip(): r for r in csv.DictReader(fh)}
     tasks: list[dict[str, Any]] = []
     per_group: dict[tuple[str, str], int] = {}
+    has_levels = any("level" in r for r in extra.values())
     for pid, spec in specs.items():
         meta = extra.get(pid, {})
         level = (meta.get("level") or "").strip() or "all"
         model = (meta.get("model") or "").strip() or "?"
+        if has_levels and level not in ALL_LEVELS:  # a damaged or hand-edited row must not vanish from the counts
+            raise BenchError(f"{manifest}: pair {pid} has " + (f"an unknown level {level!r} (levels: "
+                             f"{','.join(ALL_LEVELS)})" if level != "all" else "no level (a damaged row?)"))
         if level not in levels:
             continue
         if spec.gt is None:
             raise BenchError(f"{manifest}: pair {pid} has no ground truth (gt column)")
+        if check_files:  # bad benchmark data is not an engine failure: name it before anything runs
+            for role, path in (("source", spec.source), ("target", spec.target)):
+                if not Path(path).is_file():
+                    raise BenchError(f"{manifest}: pair {pid}: its {role} {path} does not exist")
+            try:
+                read_matrix(spec.gt)
+            except MatrixError as err:
+                raise BenchError(f"{manifest}: pair {pid}: ground truth {err}") from None
         n = per_group.get((level, model), 0)
         if quick and n >= quick_pairs:
             continue

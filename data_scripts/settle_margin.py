@@ -202,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         alone = resolve_config(args.config, args.overrides)[0].engine.outer.settle_alone
         config, config_dict = resolve_config(args.config, [*args.overrides, *NEVER_SETTLE])
-        tasks = load_tasks(args.data / "pairs.csv", levels, False, config, config_dict)
+        tasks = load_tasks(args.data / "pairs.csv", levels, False, config, config_dict,
+                           check_files=not args.from_csv)  # --from-csv renders saved rows: no cloud is read
     except BenchError as err:
         print(f"settle_margin: error: {err}", file=sys.stderr)
         return 2

@@ -140,6 +140,9 @@ def test_quick_keeps_first_three_pairs_per_model_and_level(tmp_path):
                 pid = f"{level}_{model}_{k}"
                 rows.append({"pair_id": pid, "source": f"{pid}_s.ply", "target": f"{pid}_t.ply", "gt": f"{pid}.txt",
                              "model": model, "level": level, "scale_gt": "", "overlap_src": "", "overlap_tgt": ""})
+                (tmp_path / f"{pid}_s.ply").touch()  # (load_tasks checks that the files are there)
+                (tmp_path / f"{pid}_t.ply").touch()
+                (tmp_path / f"{pid}.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     mb.write_manifest(tmp_path / "pairs.csv", rows)
     config, d = be.resolve_config(None, [])
     tasks = be.load_tasks(tmp_path / "pairs.csv", ["hard", "cross"], True, config, d)
@@ -149,6 +152,19 @@ def test_quick_keeps_first_three_pairs_per_model_and_level(tmp_path):
     assert len(be.load_tasks(tmp_path / "pairs.csv", ["cross"], False, config, d)) == 10
     with pytest.raises(be.BenchError, match="no pairs for level"):
         be.load_tasks(tmp_path / "pairs.csv", ["easy"], False, config, d)
+    # bad benchmark data is named before anything runs, not counted as the engine's refusal or dropped
+    # (a missing cloud and a corrupt ground truth ran as "honest failures"; a damaged row vanished: an audit)
+    good = list(rows)
+    (tmp_path / "bad.txt").write_text("not a matrix\n")
+    for change, message in ((lambda r: r.update(source="gone.ply"), "its source .*gone.ply does not exist"),
+                            (lambda r: r.update(gt="bad.txt"), "ground truth .*bad.txt"),
+                            (lambda r: r.update(level="eazy"), "unknown level 'eazy'"),
+                            (lambda r: r.update(level=""), "no level")):
+        rows = [dict(r) for r in good]
+        change(rows[-1])
+        mb.write_manifest(tmp_path / "pairs.csv", rows)
+        with pytest.raises(be.BenchError, match=message):
+            be.load_tasks(tmp_path / "pairs.csv", ["hard", "cross"], False, config, d)
 
 
 def test_stage_table_and_failed_list_render():
