@@ -464,7 +464,7 @@ class _Rate(click.FloatRange):
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         rate = super().convert(value, param, ctx)
         if rate != rate:  # NaN
-            self.fail(f"{value!r} is not a number in the range {self._describe_range()}.", param, ctx)
+            self.fail(f"{value!r} is not a number in the range {self.min}<=x<={self.max}.", param, ctx)
         return rate
 
 

@@ -396,8 +396,9 @@ def dask_outcomes(
                 raise _lost(scheduler, len(inflight)) from exc
             _track_starts(starts, inflight)  # (starts announced while waiting: who was running when a worker died)
             finished = [f for f in inflight if f in done]  # submission order among the finished
-            crashed_workers.update(a for f in finished if inflight[f].started is not None
-                                   and (a := _killed_worker_address(f)) is not None)
+            lost_on_of = {f: _killed_worker_address(f) for f in finished}  # the worker each KilledWorker died with
+            crashed_workers.update(a for f, a in lost_on_of.items()
+                                   if a is not None and inflight[f].started is not None)
             for future in finished:
                 if future.status == "cancelled":  # not by us (see above): the scheduler is gone or restarted
                     raise _lost(scheduler, len(inflight))
@@ -405,7 +406,7 @@ def dask_outcomes(
                 starts.pop(future.key, None)
                 result_lost = future.status == "lost"  # its result died with a worker another pair crashed
                 try:
-                    lost_on = _killed_worker_address(future)
+                    lost_on = lost_on_of[future]
                     outcome = _outcome_of(future, job)
                 except OSError as exc:  # the result or error cannot be fetched any more
                     raise _lost(scheduler, len(inflight) + 1) from exc

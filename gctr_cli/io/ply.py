@@ -477,19 +477,15 @@ def pack_columns(cols: list[np.ndarray]) -> bytes:
     return rec.tobytes()
 
 
-#: rows formatted at a time by :func:`format_columns`
+#: rows formatted at a time by :func:`format_column_blocks`
 TEXT_BLOCK_ROWS = 65536
 
 
-def format_columns(cols: list[np.ndarray], separator: str = " ") -> bytes:
-    """Text rows of the columns: floats as ``%.17g`` (exact round trip), integers as integers."""
-    return b"".join(format_column_blocks(cols, separator))
-
-
 def format_column_blocks(cols: list[np.ndarray], separator: str = " ") -> Iterator[bytes]:
-    """:func:`format_columns` block by block (:data:`TEXT_BLOCK_ROWS` rows each), formatted as they are
-    asked for: a writer that writes each block as it comes never holds the whole text (10 million rows
-    of 7 columns are 740 MB of text, and were built whole, then copied, before being written)."""
+    """Text rows of the columns (floats as ``%.17g``, exact round trip; integers as integers), block by
+    block (:data:`TEXT_BLOCK_ROWS` rows each), formatted as they are asked for: a writer that writes each
+    block as it comes never holds the whole text (10 million rows of 7 columns are 740 MB of text, and were
+    built whole, then copied, before being written)."""
     if not cols or len(cols[0]) == 0:
         return
     fmts = ["%.17g" if c.dtype.kind == "f" else "%d" for c in cols]
