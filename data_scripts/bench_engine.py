@@ -134,6 +134,10 @@ class BenchError(Exception):
     """A problem with the benchmark's inputs (config, data, arguments)."""
 
 
+class BadDataError(Exception):
+    """A pair's cloud exists but cannot be read: bad benchmark data, not an engine failure."""
+
+
 #: where bench/stages-before-speed.md comes from (the default of --stages-before-note)
 STAGES_BEFORE_NOTE = ("engine of commit 087c5db, same report set, one worker, run on 2026-12-01 on another machine "
                       "(the same code has run 2x slower on another CPU: compare the shares, and the seconds only "
@@ -166,7 +170,7 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     from gctr_cli.config import config_from_dict
     from gctr_cli.engine.gctr import register
     from gctr_cli.geometry import split
-    from gctr_cli.io import load_point_cloud, read_matrix
+    from gctr_cli.io import PointCloudError, load_point_cloud, read_matrix
     from gctr_cli.metrics import transform_errors
 
     config = config_from_dict(task["config"], "<bench config>")
@@ -176,8 +180,11 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     row["rss_baseline_mb"] = _proc_status_mb("VmRSS")  # interpreter + numpy/scipy + engine imports
 
     t0 = time.perf_counter()
-    source = load_point_cloud(task["source"])
-    target = load_point_cloud(task["target"])
+    try:
+        source = load_point_cloud(task["source"])
+        target = load_point_cloud(task["target"])
+    except (PointCloudError, OSError) as load_error:  # checked to exist before the run, but unreadable
+        raise BadDataError(str(load_error)) from None
     T_gt = read_matrix(task["gt"])
     row["load_s"] = time.perf_counter() - t0
     row["n_source"], row["n_target"] = len(source), len(target)
@@ -258,6 +265,8 @@ def _child_main(task: dict[str, Any], conn: Any) -> None:
     keep_freed_memory()  # as gctr register and the batch workers do
     try:
         row = run_one(task)
+    except BadDataError as exc:  # named in one line by main, no traceback
+        row = _error_row(task, "bad_data", str(exc))
     except BaseException as exc:  # noqa: BLE001 - every problem becomes that pair's row
         row = _error_row(task, "error", f"{type(exc).__name__}: {exc}")
         row["traceback"] = traceback.format_exc()
@@ -1121,6 +1130,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r['pair_id']}: {r['traceback']}", file=sys.stderr)
     stages = stage_names(rows)
     write_csv(csv_path, rows, stages)
+    if bad := [r for r in rows if r["status"] == "bad_data"]:  # not the engine's failures: no report of them
+        for r in bad:
+            print(f"error: {manifest}: pair {r['pair_id']}: {r['message']}", file=sys.stderr)
+        print(f"error: {len(bad)} pair(s) with unreadable clouds; the other pairs' rows are in {csv_path}, "
+              f"no report written", file=sys.stderr)
+        return 2
     plot_name = "confidence_tradeoff.png" if args.variant == "default" else f"confidence_tradeoff_{args.variant}.png"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     plot_confidence_tradeoff({"gctr": confidence_sweep(rows)}, args.out.parent / plot_name,

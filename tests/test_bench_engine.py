@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -108,6 +109,26 @@ def test_cli_writes_csv_and_report_consistent_with_it(tiny_data, tmp_path):
     assert "overrides: `engine.refine.enabled=false`" in report2
     _, rows2 = read_rows(tmp_path / "n.csv")
     assert [r["pair_id"] for r in rows2] == ["cross_bunny_0"] and float(rows2[0]["t_refine"]) == 0.0
+
+
+@pytest.mark.slow
+def test_an_unreadable_cloud_is_named_in_one_line_and_the_other_rows_kept(tiny_data, tmp_path):
+    """A cloud that exists but does not read was counted as the engine's failure, with a traceback and exit 0
+    (found by an audit): now one line naming the pair and the file, exit 2, the good pair's row in the CSV and
+    no report that would count the bad data as a refusal."""
+    data = tmp_path / "data"
+    shutil.copytree(tiny_data, data)
+    bad = data / "cross" / "cross_bunny_0_src.ply"
+    bad.write_text("ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nend_header\n1\n")
+    out, pairs_csv = tmp_path / "ENGINE.md", tmp_path / "t_pairs.csv"
+    proc = run_cli("--data", str(data), "--levels", "easy,cross", "--no-diagnose", "--out", str(out),
+                   "--csv", str(pairs_csv))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert f"error: {data / 'pairs.csv'}: pair cross_bunny_0: {bad}: PLY vertex element has no y/z fields" \
+        in proc.stderr
+    _, rows = read_rows(pairs_csv)
+    assert [(r["pair_id"], r["status"]) for r in rows] == [("easy_bunny_0", "ok"), ("cross_bunny_0", "bad_data")]
+    assert float(rows[0]["rot_err_deg"]) < 1.0 and not out.exists()
 
 
 def test_run_one_is_deterministic_apart_from_timings(tiny_data):

@@ -145,6 +145,9 @@ def test_config_show_file_and_check(runner, tmp_path):
         # a control character: PyYAML gives a character offset and a second line, not a line and column
         ("engine:\n  seed: 3\n\x00\n", ["not valid YAML (line 3, column 1): control character 0x00 is not allowed"]),
         ("seed: \x01\n", ["not valid YAML (line 1, column 7): control character 0x01 is not allowed"]),
+        # a byte-order mark (Windows editors) is not a column of line 1
+        ("\ufeffseed: \x01\n", ["not valid YAML (line 1, column 7): control character 0x01 is not allowed"]),
+        ("\ufeffseed: [1, 2\n", ["not valid YAML (line 1, column 7): while parsing a flow sequence"]),
         ("engine:\n  seed: 1\nengine:\n  seed: 2\n", ["(line 3, column 1): key 'engine' is given twice"]),
         ("engine:\n  refine:\n    end_ratio: 0.9\n", ["engine.refine.end_ratio must not exceed"]),
         ("engine:\n  refine:\n    iterations: on\n", ["engine.refine.iterations", "expected a number, got a boolean"]),

@@ -395,6 +395,18 @@ def test_a_bad_models_file_or_an_out_under_a_file_is_one_line(tmp_path):
         assert res.exception is None or isinstance(res.exception, SystemExit)
 
 
+def test_nothing_to_generate_is_a_usage_error(tmp_path):
+    """``--levels ''`` or 0 pairs per model wrote an empty pairs.csv and exited 0 (found by an audit)."""
+    from click.testing import CliRunner
+
+    for args, expected in ((["--levels", " , "], "Invalid value for --levels: no level given"),
+                           (["--levels", "easy", "--pairs-per-model", "0"],
+                            "Invalid value for --pairs-per-model: 0 pairs per model and no real pairs")):
+        res = CliRunner().invoke(mb.cli, ["generate", *args, "--out", str(tmp_path / "d")])
+        assert res.exit_code == 2 and expected in res.output, res.output
+        assert not (tmp_path / "d").exists()
+
+
 def test_scene_missing_shared_file_is_named(tmp_path):
     (tmp_path / "real" / "nclt_lidar").mkdir(parents=True)
     with pytest.raises(Exception, match=r"cloud_bin_0\.ply"):
