@@ -21,7 +21,7 @@ help:
 	@echo "make bench-engine  full engine benchmark on the report set (seed 0) -> bench/ENGINE.md (tens of minutes),"
 	@echo "                   per-stage times compared with bench/stages-before-speed.md (before the speed work)"
 	@echo "make bench-engine-tune  the same on the tuning set (seed 1) -> bench/work/ENGINE-seed1.md"
-	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd on the report set -> bench/RESULTS.md (long)"
+	@echo "make bench         gctr vs icp, fpfh_ransac, fgr, cpd, kiss_matcher on the report set -> bench/RESULTS.md (long)"
 	@echo "make bench-quick   the same on 26 pairs, < 5 min -> bench/work/compare-quick/RESULTS.md"
 	@echo "make bench-process whole-process time of gctr register (engine + comparison methods) vs an Open3D script,"
 	@echo "                   one core -> bench/PROCESS.md"
