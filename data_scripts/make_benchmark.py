@@ -873,9 +873,10 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
         raise click.BadParameter(f"unknown level(s) {bad}; choose from {','.join(ALL_LEVELS)}", param_hint="--levels")
     if not level_names and not real:
         raise click.BadParameter(f"no level given; choose from {','.join(ALL_LEVELS)}", param_hint="--levels")
-    if pairs_per_model == 0 and not (real or "real" in level_names):
-        raise click.BadParameter("0 pairs per model and no real pairs: nothing to generate",
-                                 param_hint="--pairs-per-model")
+    if pairs_per_model == 0 and not (real or "real" in level_names or "scene" in level_names):
+        # (level scene with 0 windows still writes its two real kitchen pairs)
+        raise click.BadParameter("0 pairs per model and no level with real pairs (real, scene): nothing to "
+                                 "generate", param_hint="--pairs-per-model")
     fmts = _parse_formats(formats)
     noise = _parse_noise(scene_noise) if scene_noise is not None else None
     if noise is not None and "scene" not in level_names:
