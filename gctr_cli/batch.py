@@ -90,6 +90,13 @@ __all__ = [
 ]
 
 
+def _os_problem(exc: OSError) -> str:
+    """``file: problem`` of an OS error while setting up the output folder (which of its files: a read-only
+    transforms.csv and a full disk read alike without it), else its text."""
+    problem = exc.strerror or exc_message(exc)
+    return f"{exc.filename}: {problem}" if exc.strerror and exc.filename else problem
+
+
 def resolve_workers(requested: int | None, config: Config) -> int:
     """``requested`` (or ``config.batch.workers``); 0 means one per available core."""
     n = config.batch.workers if requested is None else int(requested)
@@ -213,7 +220,7 @@ def run_batch(
         try:
             lock.acquire()
         except OSError as exc:  # LockError (another batch) is not an OSError
-            raise BatchError(f"cannot set up output folder {outdir}: {exc.strerror or exc_message(exc)}; nothing "
+            raise BatchError(f"cannot set up output folder {outdir}: {_os_problem(exc)}; nothing "
                              "was run") from exc
         try:
             summary = _run_locked(pairs, config, outdir, resume, n_workers, ref, executor, scheduler, snapshots,
@@ -321,8 +328,7 @@ def _run_locked(pairs: Sequence[Any], config: Config, outdir: Path, resume: bool
             if before is not None:
                 _undo_setup(outdir, before, originals)
             if setting_up and isinstance(exc, OSError):
-                problem = exc.strerror or exc_message(exc)
-                raise BatchError(f"cannot set up output folder {outdir}: {problem}; nothing was run") from exc
+                raise BatchError(f"cannot set up output folder {outdir}: {_os_problem(exc)}; nothing was run") from exc
         raise
     finally:
         if outputs is not None:

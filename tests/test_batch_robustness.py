@@ -242,6 +242,18 @@ def test_a_resume_stopped_before_its_first_pair_keeps_the_rows_it_would_rerun(fo
     assert (out / "transforms.csv").read_bytes() == before
 
 
+def test_a_setup_error_names_the_file(four_pairs, fast_config, tmp_path, monkeypatch):
+    """A read-only transforms.csv under --resume said only "Permission denied" (found by an audit)."""
+    def refused(path, *args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(batch, "atomic_write", refused)
+    out = tmp_path / "out"
+    with pytest.raises(BatchError, match=rf"cannot set up output folder {out}: {out}/config.yaml: Permission denied; "
+                                         "nothing was run"):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+
+
 def test_a_full_disk_for_the_lock_is_a_setup_error_and_leaves_nothing(four_pairs, fast_config, tmp_path, monkeypatch):
     from gctr_cli import lock
 

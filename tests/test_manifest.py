@@ -292,6 +292,24 @@ def test_a_ground_truth_extension_in_capitals_pairs_as_a_cloud_extension_does(fo
             "s03.Txt (beside s03.txt)") in caplog.text
 
 
+def test_a_broken_or_folder_ground_truth_is_kept_so_its_pair_fails_loudly(folders, caplog):
+    """A broken link ``s03.txt`` or a folder ``s02.txt`` in the ground-truth folder was left out, so the pair had
+    no ground truth and a ``--min-success`` gate passed it unmeasured (found by an audit); a folder named like a
+    cloud showed only as an unmatched stem of the other side."""
+    src, tgt, gt = folders
+    (gt / "s03.txt").unlink()
+    (gt / "s03.txt").symlink_to(gt / "gone.txt")
+    (gt / "s02.txt").mkdir()
+    (src / "s04.ply").write_text("x")  # the target's s04.ply is a folder
+    with caplog.at_level(logging.WARNING, logger="gctr_cli.manifest"):
+        pairs = build_manifest(src, tgt, gt)
+    assert [(p.pair_id, p.gt) for p in pairs] == [("s01", gt / "s01.txt"), ("s02", gt / "s02.txt"),
+                                                  ("s03", gt / "s03.txt")]
+    assert "have no ground truth" not in caplog.text
+    assert f"{tgt}: target folder has subfolders named like point cloud files, left out (not files): s04.ply" \
+        in caplog.text
+
+
 def test_build_without_gt(folders):
     src, tgt, _ = folders
     pairs = build_manifest(str(src), str(tgt))
