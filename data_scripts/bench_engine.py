@@ -376,8 +376,8 @@ def resolve_config(path: Path | None, overrides: list[str]) -> tuple[Any, dict[s
     data: dict[str, Any] = {}
     if path is not None:
         try:
-            loaded = yaml.safe_load(Path(path).read_text())
-        except (OSError, yaml.YAMLError) as err:
+            loaded = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError, UnicodeDecodeError) as err:
             raise BenchError(f"config {path}: {err}") from None
         if loaded is not None and not isinstance(loaded, dict):
             raise BenchError(f"config {path}: top level must be a mapping")
@@ -484,7 +484,8 @@ def load_tasks(manifest: Path, levels: list[str], quick: bool, config: Any,
         if check_files:  # bad benchmark data is not an engine failure: name it before anything runs
             for role, path in (("source", spec.source), ("target", spec.target)):
                 if not Path(path).is_file():
-                    raise BenchError(f"{manifest}: pair {pid}: its {role} {path} does not exist")
+                    what = "is not a regular file" if Path(path).exists() else "does not exist"
+                    raise BenchError(f"{manifest}: pair {pid}: its {role} {path} {what}")
             try:
                 read_matrix(spec.gt)
             except MatrixError as err:

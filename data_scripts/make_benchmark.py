@@ -885,6 +885,8 @@ def generate(models, levels, pairs_per_model, seed, out, real, shared, real_full
     special = [lv for lv in level_names if lv in SPECIAL_LEVELS]
     scenes = load_scenes(shared) if "scene" in level_names else None  # fail early on missing files
     dragon = load_dragon_scans(shared) if (real or "real" in level_names) else None  # likewise
+    if (synthetic or special) and not _split(models):
+        raise click.BadParameter("no model given", param_hint="--models")
     try:
         loaded = load_models(_split(models)) if synthetic or special else {}
     except PointCloudError as exc:  # a --models file that is missing or not a point cloud

@@ -94,7 +94,8 @@ def _os_problem(exc: OSError) -> str:
     """``file: problem`` of an OS error while setting up the output folder (which of its files: a read-only
     transforms.csv and a full disk read alike without it), else its text."""
     problem = exc.strerror or exc_message(exc)
-    return f"{exc.filename}: {problem}" if exc.strerror and exc.filename else problem
+    name = exc.filename2 or exc.filename  # os.replace(a, b) and the like: b is the file being set up
+    return f"{name}: {problem}" if exc.strerror and name else problem
 
 
 def resolve_workers(requested: int | None, config: Config) -> int:

@@ -494,7 +494,7 @@ def load_config(path: str | Path | None) -> Config:
     import yaml  # here, not at the top: `gctr register` without -c never reads YAML
 
     try:
-        text = p.read_text(encoding="utf-8-sig")  # a BOM is not part of line 1 (columns below)
+        text = p.read_text(encoding="utf-8").removeprefix("\ufeff")  # a BOM is not part of line 1's columns
     except UnicodeDecodeError as err:
         raise ConfigError(f"config file {p} is not UTF-8 text (bad byte at offset {err.start}); "
                           "is it a YAML file?") from None

@@ -208,9 +208,12 @@ def atomic_write(path: str | Path, data: bytes | str | Iterable[bytes]) -> None:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             tmp.unlink()
         except OSError:
             pass
+        if isinstance(exc, OSError) and exc.errno is not None and str(tmp) in (exc.filename, exc.filename2):
+            # the temporary name is gone by the time a message shows it: name the file being written
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
         raise

@@ -271,16 +271,15 @@ def _cloud_files_by_stem(folder: Path, role: str) -> tuple[dict[str, Path], dict
     """The point cloud files of ``folder`` by stem, and those of the stems held by several files (left out)."""
     found: dict[str, list[Path]] = {}
     not_utf8 = []
-    folders_named_like_clouds = []
+    not_files_named_like_clouds = []
     for f in sorted(folder.iterdir()):
         # a link counts whatever it points to (a DVC cache file without extension, or something
         # unreadable: the pair's row then says what is wrong with it)
         hidden_or_other = f.name.startswith(".") or f.suffix.lower() not in FOLDER_EXTENSIONS
         if hidden_or_other:
             continue
-        if not (f.is_symlink() or f.is_file()):
-            if f.is_dir():
-                folders_named_like_clouds.append(shown_name(f.name))
+        if not (f.is_symlink() or f.is_file()):  # a folder, a FIFO, a socket: named below
+            not_files_named_like_clouds.append(shown_name(f.name))
             continue
         if not _utf8(f.name):
             not_utf8.append(shown_name(f.name))
@@ -290,9 +289,10 @@ def _cloud_files_by_stem(folder: Path, role: str) -> tuple[dict[str, Path], dict
         logger.warning("%s: %s folder has point cloud files whose names are not valid UTF-8, left out (rename "
                        "them: a manifest and gctr's CSV files are UTF-8 text): %s", shown_name(str(folder)), role,
                        _listing(not_utf8))
-    if folders_named_like_clouds:  # else the stem shows only as "unmatched" on the other side
-        logger.warning("%s: %s folder has subfolders named like point cloud files, left out (not files): %s",
-                       shown_name(str(folder)), role, _listing(folders_named_like_clouds))
+    if not_files_named_like_clouds:  # else the stem shows only as "unmatched" on the other side
+        logger.warning("%s: %s folder has subfolders or other entries named like point cloud files, left out "
+                       "(not files): %s",
+                       shown_name(str(folder)), role, _listing(not_files_named_like_clouds))
     ambiguous = {s: fs for s, fs in found.items() if len(fs) > 1}
     if ambiguous:  # one such stem must not cost a nightly run its other pairs: left out, with a warning
         desc = _listing([f"{s} ({', '.join(f.name for f in fs)})" for s, fs in sorted(ambiguous.items())])
@@ -335,7 +335,8 @@ def _gt_files_by_stem(gt_dir: Path) -> dict[str, Path]:
     the pair's row says what is wrong with it."""
     found: dict[str, Path] = {}
     ignored: list[str] = []
-    for f in sorted(gt_dir.iterdir(), key=lambda f: (f.suffix != ".txt", f.name)):  # the exact ".txt" first
+    # a regular file first (a broken link or a folder only where the stem has no file), then the exact ".txt"
+    for f in sorted(gt_dir.iterdir(), key=lambda f: (not f.is_file(), f.suffix != ".txt", f.name)):
         if f.suffix.lower() == ".txt" and not f.name.startswith("."):
             if f.stem in found:
                 ignored.append(f"{f.name} (beside {found[f.stem].name})")

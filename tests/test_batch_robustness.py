@@ -254,6 +254,16 @@ def test_a_setup_error_names_the_file(four_pairs, fast_config, tmp_path, monkeyp
         run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
 
 
+def test_a_setup_error_names_the_file_being_written_not_its_temporary_copy(four_pairs, fast_config, tmp_path):
+    """A folder where config.yaml goes: the message named the temporary .config.yaml.<pid>.<hex>.tmp, which no
+    longer exists when it is read (found in review)."""
+    out = tmp_path / "out"
+    (out / "config.yaml").mkdir(parents=True)
+    with pytest.raises(BatchError, match=rf"cannot set up output folder {out}: {out}/config.yaml: Is a directory; "
+                                         "nothing was run"):
+        run_batch(four_pairs.specs(), fast_config, out, workers=1, register_fn=fake_engine.register)
+
+
 def test_a_full_disk_for_the_lock_is_a_setup_error_and_leaves_nothing(four_pairs, fast_config, tmp_path, monkeypatch):
     from gctr_cli import lock
 

@@ -177,7 +177,9 @@ def test_quick_keeps_first_three_pairs_per_model_and_level(tmp_path):
     # (a missing cloud and a corrupt ground truth ran as "honest failures"; a damaged row vanished: an audit)
     good = list(rows)
     (tmp_path / "bad.txt").write_text("not a matrix\n")
+    (tmp_path / "folder.ply").mkdir()
     for change, message in ((lambda r: r.update(source="gone.ply"), "its source .*gone.ply does not exist"),
+                            (lambda r: r.update(target="folder.ply"), "its target .*folder.ply is not a regular file"),
                             (lambda r: r.update(gt="bad.txt"), "ground truth .*bad.txt"),
                             (lambda r: r.update(level="eazy"), "unknown level 'eazy'"),
                             (lambda r: r.update(level=""), "no level")):

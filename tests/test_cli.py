@@ -188,6 +188,10 @@ def test_a_config_that_is_not_text_exits_2_without_a_traceback(tmp_path):
     assert out.returncode == 2
     assert out.stderr.strip() == (f"gctr: error: config file {latin} is not UTF-8 text (bad byte at offset 14); "
                                   "is it a YAML file?")
+    bom = tmp_path / "bom.yaml"  # the offset counts the byte-order mark: it is the file's byte
+    bom.write_bytes(b"\xef\xbb\xbfseed: 1\n\xff\n")
+    out = gctr("config", "check", bom)
+    assert out.returncode == 2 and "(bad byte at offset 11)" in out.stderr, out.stderr
 
 
 def test_a_method_that_is_not_installed_is_a_config_error(runner, tmp_path, monkeypatch):

@@ -401,7 +401,8 @@ def test_nothing_to_generate_is_a_usage_error(tmp_path):
 
     for args, expected in ((["--levels", " , "], "Invalid value for --levels: no level given"),
                            (["--levels", "easy", "--pairs-per-model", "0"],
-                            "Invalid value for --pairs-per-model: 0 pairs per model and no level with real pairs")):
+                            "Invalid value for --pairs-per-model: 0 pairs per model and no level with real pairs"),
+                           (["--levels", "easy", "--models", " , "], "Invalid value for --models: no model given")):
         res = CliRunner().invoke(mb.cli, ["generate", *args, "--out", str(tmp_path / "d")])
         assert res.exit_code == 2 and expected in res.output, res.output
         assert not (tmp_path / "d").exists()

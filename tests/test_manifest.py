@@ -306,8 +306,12 @@ def test_a_broken_or_folder_ground_truth_is_kept_so_its_pair_fails_loudly(folder
     assert [(p.pair_id, p.gt) for p in pairs] == [("s01", gt / "s01.txt"), ("s02", gt / "s02.txt"),
                                                   ("s03", gt / "s03.txt")]
     assert "have no ground truth" not in caplog.text
-    assert f"{tgt}: target folder has subfolders named like point cloud files, left out (not files): s04.ply" \
-        in caplog.text
+    assert (f"{tgt}: target folder has subfolders or other entries named like point cloud files, left out (not "
+            "files): s04.ply") in caplog.text
+    (gt / "s01.TXT").write_text("x")  # beside a folder s01.txt, a file s01.TXT is the ground truth
+    (gt / "s01.txt").unlink()
+    (gt / "s01.txt").mkdir()
+    assert build_manifest(src, tgt, gt)[0].gt == gt / "s01.TXT"
 
 
 def test_build_without_gt(folders):
