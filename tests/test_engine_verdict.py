@@ -355,25 +355,6 @@ def test_source_halves_split_at_the_median_along_each_principal_axis():
         assert abs(gap @ axes[:, 2 - a]) / np.linalg.norm(gap) > 0.95
 
 
-def test_the_halves_run_only_the_equal_share_hypotheses(monkeypatch):
-    """A half is the slab at one end of an overlap, not a part inside a whole (the first search tried those
-    on the whole source): the halves skip ``part_regions``, a quarter of their time, with the same answers on
-    tuning seed 1 (docs/how-it-works.md)."""
-    from gctr_cli.engine import halves
-    from gctr_cli.engine.prepare import StageTimer, prepare_cloud
-    from gctr_cli.engine.preprocess import normalise
-
-    seen: list[list[str]] = []
-    monkeypatch.setattr(halves, "search", lambda src, tgt, plan, *a, **k: seen.append([h.name for h in plan]) or [])
-    cfg = cfg_default()
-    points = normalise(_model("bunny")[::8]).points
-    timer = StageTimer({})
-    prepared = prepare_cloud(points, cfg, np.random.default_rng(0), timer)
-    assert halves.half_candidates(points, prepared, prepared, (0.1, 10.0), cfg, 0, timer) == []
-    assert len(seen) == 6 and all(plan == ["overlap 1.00", "overlap 0.75", "overlap 0.50", "overlap 0.25"]
-                                  for plan in seen), seen
-
-
 def test_score_of_the_truth_beats_a_wrong_pose():
     """The diagnostic the benchmark uses: the engine's own score of the ground truth is higher than
     that of a pose turned by 90 degrees."""

@@ -9,13 +9,10 @@ Run from the source's half that contains the slab — the source split at its me
 three principal axes — the same search finds it: on the 19 failed low-overlap pairs of tuning seed 1,
 one of the six halves gave the right transform on 17 (``docs/how-it-works.md``).
 
-:func:`half_candidates` runs the overlap search on each half and returns the candidates in the coordinates
-of the whole source, their surface agreement re-measured on the whole clouds, so that the verdict compares
-them with the first search's on equal terms. A half runs only the plan's equal-share hypotheses
-(``overlap_candidates``), not the part-in-whole ones: a half is the slab at one end of an overlap, and the
-first search has tried the part hypotheses on the whole source; without them the halves take about a
-quarter less time, with the same answers (``docs/how-it-works.md``). It still costs about six searches, so
-the engine runs it only when the first verdict's confidence is below ``source_halves_below``.
+:func:`half_candidates` runs the overlap search (the whole plan) on each half and returns the candidates
+in the coordinates of the whole source, their surface agreement re-measured on the whole clouds, so that
+the verdict compares them with the first search's on equal terms. It costs about six searches, so the
+engine runs it only when the first verdict's confidence is below ``source_halves_below``.
 """
 
 from __future__ import annotations
@@ -62,7 +59,7 @@ def half_candidates(source_n: np.ndarray, src: PreparedCloud, tgt: PreparedCloud
     ``bounds_n`` the scale bounds in those units; the candidates map the whole normalised source onto
     the normalised target, like the first search's.
     """
-    plan = [h for h in search_plan(cfg) if h.region_src == h.region_tgt]  # equal shares, no part-in-whole
+    plan = search_plan(cfg)
     out: list[Candidate] = []
     for k, mask in enumerate(source_halves(source_n)):
         rng_src, *rng_plan = [np.random.default_rng(s) for s in
