@@ -335,13 +335,13 @@ def _gt_files_by_stem(gt_dir: Path) -> dict[str, Path]:
     the pair's row says what is wrong with it."""
     found: dict[str, Path] = {}
     ignored: list[str] = []
+    entries = [f for f in gt_dir.iterdir() if f.suffix.lower() == ".txt" and not f.name.startswith(".")]
     # a regular file first (a broken link or a folder only where the stem has no file), then the exact ".txt"
-    for f in sorted(gt_dir.iterdir(), key=lambda f: (not f.is_file(), f.suffix != ".txt", f.name)):
-        if f.suffix.lower() == ".txt" and not f.name.startswith("."):
-            if f.stem in found:
-                ignored.append(f"{f.name} (beside {found[f.stem].name})")
-            else:
-                found[f.stem] = f
+    for f in sorted(entries, key=lambda f: (not f.is_file(), f.suffix != ".txt", f.name)):
+        if f.stem in found:
+            ignored.append(f"{f.name} (beside {found[f.stem].name})")
+        else:
+            found[f.stem] = f
     if ignored:
         logger.warning("%d ground-truth file(s) in %s ignored, their stem has one already: %s", len(ignored),
                        gt_dir, _listing(ignored))

@@ -4,7 +4,7 @@ Fields other than x y z are kept as attributes, a field of ``COUNT k`` (a histog
 k columns ``name_0 .. name_{k-1}``; a packed ``rgb``/``rgba`` is unpacked into ``red``/``green``/``blue``
 (uint8), and ``rgba``'s alpha into ``alpha``. A non-identity ``VIEWPOINT`` (the sensor's pose) is not
 applied to the points, as in PCL, with a warning; a PCD output of the cloud writes it back, moved with
-the points (:func:`pcd_bytes`). ``binary_compressed`` data is LZF, decompressed
+the points (:func:`pcd_chunks`). ``binary_compressed`` data is LZF, decompressed
 with python-lzf after the declared sizes have been checked: the uncompressed size must equal the
 header's points x point size and LZF expands at most about 88-fold, so a 200-byte file can never ask
 for gigabytes.
@@ -35,7 +35,7 @@ from gctr_cli.io.lines import (
 )
 from gctr_cli.io.ply import format_column_blocks, pack_columns
 
-__all__ = ["read_pcd", "pcd_bytes"]
+__all__ = ["pcd_chunks", "read_pcd"]
 
 logger = logging.getLogger("gctr_cli.io")
 
@@ -378,11 +378,6 @@ def float32_is_enough(points: np.ndarray) -> bool:
 def _number(v: float) -> str:
     """``v`` as the shortest text that reads back as the same double (``1``, ``0.5``, ``1e-05``)."""
     return str(int(v)) if v.is_integer() and abs(v) < 1e15 else repr(v)
-
-
-def pcd_bytes(cloud: PointCloud, binary: bool = True, float32: bool = False) -> bytes:
-    """The bytes of a PCD file (:func:`pcd_chunks` joined)."""
-    return b"".join(pcd_chunks(cloud, binary, float32))
 
 
 def pcd_chunks(cloud: PointCloud, binary: bool = True, float32: bool = False) -> Iterable[bytes]:

@@ -22,7 +22,7 @@ intensity red`` as gctr writes it, ``X Y Z R G B``, ``//X,Y,Z,Intensity``), else
 Leica layout, else ``column_4`` ... (:func:`_attribute_names`). Otherwise x y z are read and one
 warning names the first line that does not fit: columns are never dropped without a word.
 
-Written (:func:`text_bytes`, :func:`csv_bytes`, :func:`pts_bytes`) as ``%.17g`` rows: ``.xyz`` / ``.txt``
+Written (:func:`text_chunks`, :func:`csv_chunks`, :func:`pts_chunks`) as ``%.17g`` rows: ``.xyz`` / ``.txt``
 with every numeric attribute after x y z, named in a ``# x y z name ...`` line; ``.csv`` the same
 comma-separated under an ``x,y,z,name,...`` header line; ``.pts`` as the point count
 and rows ``x y z [intensity] [red green blue]`` only, the layouts PTS readers know by their number of
@@ -52,7 +52,7 @@ from gctr_cli.io.ply import format_column_blocks
 
 logger = logging.getLogger("gctr_cli.io")
 
-__all__ = ["csv_bytes", "pts_bytes", "read_text", "text_bytes"]
+__all__ = ["csv_chunks", "pts_chunks", "read_text", "text_chunks"]
 
 #: the first block of a text cloud is small (header detection runs line by line); later ones are large
 _TEXT_FIRST_BLOCK = 1 << 16
@@ -501,11 +501,6 @@ def _numeric_attributes(cloud: PointCloud) -> list[tuple[str, np.ndarray]]:
             if np.asarray(v).shape == (n,) and np.asarray(v).dtype.kind in "fiu"]
 
 
-def text_bytes(cloud: PointCloud) -> bytes:
-    """An ``.xyz`` / ``.txt`` file (:func:`text_chunks` joined)."""
-    return b"".join(text_chunks(cloud))
-
-
 def text_chunks(cloud: PointCloud) -> Iterable[bytes]:
     """Text rows ``x y z [attributes...]`` (``%.17g``, exact round trip) of an ``.xyz`` / ``.txt`` file;
     with attributes, a ``# x y z name ...`` comment line names the columns. In pieces, the rows formatted
@@ -519,11 +514,6 @@ def text_chunks(cloud: PointCloud) -> Iterable[bytes]:
                            format_column_blocks([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra]))
 
 
-def csv_bytes(cloud: PointCloud) -> bytes:
-    """A ``.csv`` file (:func:`csv_chunks` joined)."""
-    return b"".join(csv_chunks(cloud))
-
-
 def csv_chunks(cloud: PointCloud) -> Iterable[bytes]:
     """A ``.csv`` file: a header line ``x,y,z,name,...`` and comma-separated rows (``%.17g``), with every
     numeric attribute after x y z (as :func:`text_chunks`), in pieces."""
@@ -532,11 +522,6 @@ def csv_chunks(cloud: PointCloud) -> Iterable[bytes]:
     head = ",".join(["x", "y", "z"] + ["_".join(str(k).split()) for k, _ in extra]) + "\n"
     return itertools.chain([head.encode("ascii")],
                            format_column_blocks([pts[:, 0], pts[:, 1], pts[:, 2]] + [v for _, v in extra], ","))
-
-
-def pts_bytes(cloud: PointCloud, path: Path | None = None) -> bytes:
-    """A ``.pts`` file (:func:`pts_chunks` joined)."""
-    return b"".join(pts_chunks(cloud, path))
 
 
 def pts_chunks(cloud: PointCloud, path: Path | None = None) -> Iterable[bytes]:
