@@ -369,18 +369,16 @@ def parse_set(item: str) -> tuple[list[str], Any]:
 
 def resolve_config(path: Path | None, overrides: list[str]) -> tuple[Any, dict[str, Any]]:
     """(validated Config, its resolved plain dict) from an optional YAML file and ``--set`` overrides."""
-    import yaml
-
-    from gctr_cli.config import ConfigError, config_from_dict
+    from gctr_cli.config import ConfigError, config_from_dict, read_config_yaml
 
     data: dict[str, Any] = {}
     if path is not None:
         try:
-            loaded = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-        except (OSError, yaml.YAMLError, UnicodeDecodeError) as err:
-            raise BenchError(f"config {path}: {err}") from None
+            loaded = read_config_yaml(path)  # gctr's own reader: the same line/column messages
+        except ConfigError as err:
+            raise BenchError(str(err)) from None
         if loaded is not None and not isinstance(loaded, dict):
-            raise BenchError(f"config {path}: top level must be a mapping")
+            raise BenchError(f"invalid config {path}: top level must be a mapping, got {type(loaded).__name__}")
         data = loaded or {}
     for item in overrides:
         keys, value = parse_set(item)

@@ -488,6 +488,14 @@ def load_config(path: str | Path | None) -> Config:
     """Read and validate a YAML config; ``None`` gives the defaults."""
     if path is None:
         return Config()
+    return config_from_dict(read_config_yaml(path), str(path))
+
+
+def read_config_yaml(path: str | Path) -> Any:
+    """The parsed YAML of the config file ``path``, not yet validated (:func:`config_from_dict` does that);
+    a :class:`ConfigError` naming the file, and the line and column where known, when it cannot be read,
+    is not UTF-8 text or not YAML, or gives a key twice in one mapping. Shared by the CLI and the
+    benchmark scripts (which apply ``--set`` overrides before validating)."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file {p} does not exist")
@@ -517,7 +525,7 @@ def load_config(path: str | Path | None) -> Config:
                           f"{ord(char):#04x} is not allowed; is it a YAML file?") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"config file {p} is not valid YAML: {err}") from None
-    return config_from_dict(data, str(p))
+    return data
 
 
 @functools.cache

@@ -153,6 +153,31 @@ def test_set_overrides_are_yaml_scalars_and_validated():
         be.resolve_config(None, ["engine.refine.enabled"])
 
 
+def test_a_config_file_is_read_by_gctrs_own_reader(tmp_path):
+    """The benchmark reads a config file as `gctr` does (it had its own reader, without line and column, that let a
+    key given twice pass): the same one-line messages, and --set applied on top of the file."""
+    good = tmp_path / "good.yaml"
+    good.write_text("\ufeffengine:\n  tensor:\n    knn: 12\n")
+    config, d = be.resolve_config(good, ["engine.refine.enabled=false"])
+    assert config.engine.tensor.knn == 12 and config.engine.refine.enabled is False
+    assert d["engine"]["tensor"]["knn"] == 12
+    cases = {
+        "twice.yaml": ("engine:\n  seed: 1\nengine:\n  seed: 2\n",
+                       "is not valid YAML (line 3, column 1): key 'engine' is given twice"),
+        "bad.yaml": ("engine:\n  tensor: [1, 2\n", "is not valid YAML (line 2,"),
+        "list.yaml": ("- 1\n- 2\n", "top level must be a mapping, got list"),
+        "latin.yaml": ("engine: caf\xe9\n".encode("latin-1"), "is not UTF-8 text (bad byte at offset 11)"),
+    }
+    for name, (text, message) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(text if isinstance(text, bytes) else text.encode())
+        with pytest.raises(be.BenchError) as err:
+            be.resolve_config(path, [])
+        assert str(path) in str(err.value) and message in str(err.value), str(err.value)
+    with pytest.raises(be.BenchError, match="does not exist"):
+        be.resolve_config(tmp_path / "missing.yaml", [])
+
+
 def test_quick_keeps_first_three_pairs_per_model_and_level(tmp_path):
     rows = []
     for level in ("cross", "hard"):
