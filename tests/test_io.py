@@ -344,12 +344,12 @@ def test_ply_random_bytes(tmp_path, rng):
 
 
 @pytest.mark.parametrize("name, content, hint", [
-    ("scan.ply", gzip.compress(b"ply\nformat ascii 1.0\n"), "gzip-compressed: decompress it first"),
+    ("scan.ply", gzip.compress(b"ply\nformat ascii 1.0\n", mtime=0), "gzip-compressed: decompress it first"),
     ("scan.ply", b"0.1 0.2 0.3\n0.4 0.5 0.6\n", "text columns of numbers: name it .xyz"),
     ("scan.ply", b"LASF" + bytes(300), "content is LAS or LAZ: name it .las or .laz"),
     ("scan.pcd", b"ply\nformat ascii 1.0\nelement vertex 1\n", "content is PLY: name it .ply"),
     ("scan.pcd", b"1.5,2.5,3.5\n", "text columns of numbers"),
-    ("scan.pcd", gzip.compress(b"VERSION 0.7\n"), "gzip-compressed"),
+    ("scan.pcd", gzip.compress(b"VERSION 0.7\n", mtime=0), "gzip-compressed"),
     ("scan.ply", b"# .PCD v0.7\nVERSION 0.7\n", "content is PCD: name it .pcd"),
 ])
 def test_a_file_of_another_kind_under_a_ply_or_pcd_name_is_named_for_what_it_is(tmp_path, name, content, hint):
