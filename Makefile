@@ -13,9 +13,9 @@ SHARED       ?= ../shared/data
 
 help:
 	@echo "make demo          set up and run gctr batch on a small cross-source set (results in $(DEMO)/)"
-	@echo "make test          set up and run the test suite"
+	@echo "make test          set up and run the test suite (2 processes; TEST_JOBS=0 for one)"
 	@echo "make setup         only set up: libusb-1.0-0 and .venv with gctr[dev] (tests, benchmarks, dask)"
-	@echo "make test-fast     the test suite without the tests marked slow (pytest -m 'not slow')"
+	@echo "make test-fast     the test suite without the tests marked slow (pytest -n 2 -m 'not slow')"
 	@echo "make lint          ruff check (rules in pyproject.toml)"
 	@echo "make typecheck     mypy with the pydantic plugin (packages in pyproject.toml)"
 	@echo "make bench-engine  full engine benchmark on the report set (seed 0) -> bench/ENGINE.md (tens of minutes),"

@@ -39,7 +39,7 @@ import click
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gctr_cli.config import EngineConfig, config_from_dict, load_config
+from gctr_cli.config import ConfigError, EngineConfig, config_from_dict, load_config
 from gctr_cli.engine.prepare import PreparedCloud, StageTimer, prepare_cloud
 from gctr_cli.engine.preprocess import normalise
 from gctr_cli.engine.search import OverlapHypothesis, hypothesis_triangles, oriented, search_plan
@@ -162,14 +162,21 @@ def _merged(base: dict, extra: dict) -> dict:
 def main(data: Path, pairs: tuple[str, ...], config_path: Path | None, overrides: str, tolerance: float,
          seed: int) -> None:
     """Print, per pair and overlap hypothesis, how much true signal the tensor carries (see the module doc)."""
-    base = load_config(config_path) if config_path else config_from_dict({})
+    try:
+        base = load_config(config_path) if config_path else config_from_dict({})
+    except ConfigError as err:
+        raise click.BadParameter(str(err), param_hint="--config") from None
     try:
         extra = json.loads(overrides)
     except json.JSONDecodeError as err:
         raise click.BadParameter(f"not a JSON object: {err}", param_hint="--set") from err
     if not isinstance(extra, dict):
         raise click.BadParameter("must be a JSON object", param_hint="--set")
-    cfg = config_from_dict({**base.model_dump(), "engine": _merged(base.engine.model_dump(), extra)}).engine
+    try:
+        cfg = config_from_dict({**base.model_dump(), "engine": _merged(base.engine.model_dump(), extra)},
+                               f"{config_path or 'the built-in defaults'} with --set {overrides}").engine
+    except ConfigError as err:
+        raise click.BadParameter(str(err), param_hint="--set") from None
     with open(data / "pairs.csv", newline="") as fh:
         rows = {r["pair_id"]: r for r in csv.DictReader(fh)}
     totals = np.zeros(3, dtype=int)

@@ -488,7 +488,8 @@ def load_config(path: str | Path | None) -> Config:
     """Read and validate a YAML config; ``None`` gives the defaults."""
     if path is None:
         return Config()
-    return config_from_dict(read_config_yaml(path), str(path))
+    p = Path(path)
+    return config_from_dict(read_config_yaml(p), str(p))
 
 
 def read_config_yaml(path: str | Path) -> Any:
@@ -497,8 +498,10 @@ def read_config_yaml(path: str | Path) -> Any:
     is not UTF-8 text or not YAML, or gives a key twice in one mapping. Shared by the CLI and the
     benchmark scripts (which apply ``--set`` overrides before validating)."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise ConfigError(f"config file {p} does not exist")
+    if not p.is_file():
+        raise ConfigError(f"config file {p} is not a regular file (a folder?)")
     import yaml  # here, not at the top: `gctr register` without -c never reads YAML
 
     try:

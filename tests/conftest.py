@@ -10,6 +10,8 @@ ground-truth matrix files and a manifest. Tests that run the real GCTR engine ar
 from __future__ import annotations
 
 import csv
+import ctypes
+import glob
 import math
 import os
 import shutil
@@ -19,11 +21,46 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy
 
 from gctr_cli.geometry import apply, to_matrix
 
 TESTS_DIR = Path(__file__).resolve().parent
 REPO = TESTS_DIR.parent
+
+
+# ----------------------------------------------------------------------------------------------------
+# single-threaded BLAS for the whole session
+# ----------------------------------------------------------------------------------------------------
+
+def _openblas_libs() -> list:
+    """The OpenBLAS builds bundled with numpy and scipy (wheels), with their thread-count setters."""
+    libs = []
+    for pkg in (np, scipy):
+        for path in glob.glob(os.path.join(os.path.dirname(pkg.__file__), os.pardir, f"{pkg.__name__}.libs",
+                                           "*openblas*")):
+            try:
+                lib = ctypes.CDLL(path)
+                libs.append((lib.scipy_openblas_get_num_threads64_, lib.scipy_openblas_set_num_threads64_))
+            except (OSError, AttributeError):
+                continue
+    return libs
+
+
+@pytest.fixture(autouse=True, scope="session")
+def single_threaded_blas():
+    """Run the engine single-threaded, as batch workers do. The engine's small BLAS calls gain
+    nothing from threads, and when the cores are shared (parallel test runs, other jobs) OpenBLAS's
+    spinning threads slow the power iteration down by 10-30x. Set once per test process (each
+    pytest-xdist worker) and restored at its end; subprocesses get ``OMP_NUM_THREADS`` and friends from
+    the code they run."""
+    libs = _openblas_libs()
+    before = [get() for get, _ in libs]
+    for _, set_threads in libs:
+        set_threads(1)
+    yield
+    for (_, set_threads), n in zip(libs, before):
+        set_threads(n)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -65,3 +65,20 @@ def test_numbers_must_be_finite(section, key, value):
     knn_eps passed `gctr config check` and then failed each pair with an IndexError."""
     with pytest.raises(ConfigError, match=rf"engine\.{section}\.{key}: Input should be a finite number"):
         config_from_dict({"engine": {section: {key: value}}})
+
+
+def test_a_config_path_is_named_the_same_way_in_every_message(tmp_path, monkeypatch):
+    """A read error and a validation error of one file name it alike (`./x.yaml` is `x.yaml` in both), and a
+    folder is not a file that "does not exist" (found by a review)."""
+    monkeypatch.chdir(tmp_path)
+    Path("unknown.yaml").write_text("engine:\n  no_such_key: 1\n")
+    Path("broken.yaml").write_text("engine: [1\n")
+    Path("folder.yaml").mkdir()
+    with pytest.raises(ConfigError, match=r"^invalid config unknown\.yaml:"):
+        load_config("./unknown.yaml")
+    with pytest.raises(ConfigError, match=r"^config file broken\.yaml is not valid YAML"):
+        load_config("./broken.yaml")
+    with pytest.raises(ConfigError, match=r"^config file folder\.yaml is not a regular file"):
+        load_config("folder.yaml")
+    with pytest.raises(ConfigError, match=r"^config file missing\.yaml does not exist"):
+        load_config("missing.yaml")

@@ -6,16 +6,12 @@ model under a seeded random similarity, so the true source->target transform is 
 
 from __future__ import annotations
 
-import ctypes
 import functools
-import glob
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy
 from conftest import translation
 
 from gctr_cli.config import EngineConfig
@@ -29,34 +25,6 @@ pytestmark = pytest.mark.engine
 MODELS = Path(__file__).resolve().parent.parent / "data" / "models"
 STAGE_KEYS = {"preprocess", "supervoxels", "tensor", "power_iteration", "ransac", "verify", "similarity",
               "scoring", "refine", "verdict"}
-
-
-def _openblas_libs() -> list:
-    """The OpenBLAS builds bundled with numpy and scipy (wheels), with their thread-count setters."""
-    libs = []
-    for pkg in (np, scipy):
-        for path in glob.glob(os.path.join(os.path.dirname(pkg.__file__), os.pardir, f"{pkg.__name__}.libs",
-                                           "*openblas*")):
-            try:
-                lib = ctypes.CDLL(path)
-                libs.append((lib.scipy_openblas_get_num_threads64_, lib.scipy_openblas_set_num_threads64_))
-            except (OSError, AttributeError):
-                continue
-    return libs
-
-
-@pytest.fixture(autouse=True, scope="module")
-def single_threaded_blas():
-    """Run the engine single-threaded, as batch workers do. The engine's small BLAS calls gain
-    nothing from threads, and when the cores are shared (parallel test runs, other jobs) OpenBLAS's
-    spinning threads slow the power iteration down by 10-30x. Restored after the module."""
-    libs = _openblas_libs()
-    before = [get() for get, _ in libs]
-    for _, set_threads in libs:
-        set_threads(1)
-    yield
-    for (_, set_threads), n in zip(libs, before):
-        set_threads(n)
 
 
 @functools.cache

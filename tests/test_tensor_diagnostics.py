@@ -54,3 +54,17 @@ def test_cli_prints_a_table_per_pair_and_rejects_unknown_pairs(tmp_path):
     assert "total over 1 pairs" in out.output
     bad = CliRunner().invoke(main, [*args, "--pair", "nope"])
     assert bad.exit_code != 0 and "'nope' is not in" in bad.output
+
+
+def test_a_bad_config_or_override_is_one_line_not_a_traceback(tmp_path):
+    """A config file that is not YAML, or an override naming no key, ended in a traceback (found by a review)."""
+    (tmp_path / "pairs.csv").write_text("pair_id,source,target,gt\n")
+    (tmp_path / "bad.yaml").write_text("engine:\n  tensor: [1, 2\n")
+    bad_file = CliRunner().invoke(main, ["--data", str(tmp_path), "--pair", "p0", "--config",
+                                         str(tmp_path / "bad.yaml")])
+    assert bad_file.exit_code == 2 and isinstance(bad_file.exception, SystemExit), bad_file.output
+    assert f"config file {tmp_path / 'bad.yaml'} is not valid YAML (line 2, column 11)" in bad_file.output
+    bad_key = CliRunner().invoke(main, ["--data", str(tmp_path), "--pair", "p0", "--set", '{"no_such_key": 1}'])
+    assert bad_key.exit_code == 2 and isinstance(bad_key.exception, SystemExit), bad_key.output
+    assert "Invalid value for --set" in bad_key.output
+    assert "engine.no_such_key: unknown key" in bad_key.output
