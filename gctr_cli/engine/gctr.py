@@ -266,10 +266,11 @@ def _registered(run: SearchRun, source: np.ndarray, target: np.ndarray, cfg: Eng
             candidates = candidates + extra
             T_n, verdict = judge(candidates)
     if verdict is None:
-        hint = units_hint(nt.size / ns.size, cfg.scale_bounds)  # the sizes say how far: name it when far
-        return _failed("no consistent correspondences found (RANSAC found no valid similarity" + (
-            f"){hint}" if hint else f"; if the clouds' units may differ by more than engine.scale_bounds "
-            f"{list(cfg.scale_bounds)} allows, widen it)"), "no_correspondences", seed, start, timer.timings)
+        message = "no consistent correspondences found (RANSAC found no valid similarity"
+        hint = units_hint(nt.size / ns.size, cfg.scale_bounds)  # the sizes say how far: the ratio when far
+        message += f"){hint}" if hint else (f"; if the clouds' units may differ by more than engine.scale_bounds "
+                                            f"{list(cfg.scale_bounds)} allows, widen it)")
+        return _failed(message, "no_correspondences", seed, start, timer.timings)
     lo, hi = cfg.scale_bounds
     ratio = ns.size / nt.size  # normalised scale per original scale
     T_n, held, free = settle_at_bound(T_n, refinement, cfg, ratio, timer) if refinement else (T_n, "", float("nan"))
